@@ -1,0 +1,135 @@
+"""Camera geometry: pinhole + distortion model, pixel rays, poses, horizontal azimuths.
+
+Conventions (docs/frames.md): the camera frame is OpenCV's optical frame (x right, y down,
+z forward). Poses are 4x4 homogeneous transforms named ``T_AB`` mapping points of frame B into
+frame A: ``p_A = T_AB @ p_B``. The world W has z up and the floor at z = 0; the robot frame B is
+NAO's FRAME_ROBOT; the camera-in-robot transform ``T_BC`` arrives in the optical convention (the
+NAO-camera to optical conversion is done once, at the bridge: ``nao_bridge.robot_model``).
+
+Pixel to ray (undistorted by OpenCV's iterative model inversion)::
+
+    (x_n, y_n) = undistort(K^-1 [u v 1]^T),   ray_C = [x_n, y_n, 1] / ||[x_n, y_n, 1]||
+
+Azimuth of a ray in the world's horizontal plane::
+
+    r_W = R_WC ray_C,   a = atan2(r_W.y, r_W.x)
+
+For a vertical cylinder, the extreme left/right silhouette pixels back-project to rays lying in
+the two vertical tangent planes, whatever the camera pitch, so their azimuths a_l > a_r give the
+apparent width delta = a_l - a_r and the bearing of the centre (a_l + a_r) / 2 exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+def wrap_angle(a):
+    """Wrap angles to (-pi, pi]; works on floats and arrays."""
+    w = np.mod(np.asarray(a, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
+    w = np.where(w == -np.pi, np.pi, w)
+    return float(w) if np.ndim(w) == 0 else w
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics K (3x3), distortion (k1, k2, p1, p2, k3) and image size."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    width: int
+    height: int
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov: float) -> "CameraModel":
+        """An ideal pinhole with square pixels and the given horizontal field of view (rad)."""
+        f = 0.5 * width / math.tan(0.5 * hfov)
+        K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+        return cls(K=K, dist=np.zeros(5), width=width, height=height)
+
+    @property
+    def hfov(self) -> float:
+        return 2.0 * math.atan(0.5 * self.width / self.K[0, 0])
+
+    @property
+    def vfov(self) -> float:
+        return 2.0 * math.atan(0.5 * self.height / self.K[1, 1])
+
+    def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
+        """Unit rays in the optical frame for pixel coordinates ``uv`` (N x 2), distortion removed."""
+        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        normalized = cv2.undistortPoints(pts, self.K, self.dist).reshape(-1, 2)
+        rays = np.hstack([normalized, np.ones((normalized.shape[0], 1))])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def project(self, points_C: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N x 2) of optical-frame points (N x 3) in front of the camera."""
+        pts = np.asarray(points_C, dtype=np.float64).reshape(-1, 3)
+        uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+    def project_world(self, points_W: np.ndarray, T_WC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels of world points and a mask of those in front of the camera (z_C > 0)."""
+        T_CW = invert(T_WC)
+        pts = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
+        pc = pts @ T_CW[:3, :3].T + T_CW[:3, 3]
+        in_front = pc[:, 2] > 1e-9
+        uv = np.full((pts.shape[0], 2), np.nan)
+        if in_front.any():
+            uv[in_front] = self.project(pc[in_front])
+        return uv, in_front
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def planar_transform(x: float, y: float, theta: float) -> np.ndarray:
+    """T_WB of a robot at (x, y, theta) on the floor."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def planar_pose(T_WB: np.ndarray) -> tuple[float, float, float]:
+    """(x, y, theta) of a transform: translation on the floor and yaw of its x axis."""
+    return float(T_WB[0, 3]), float(T_WB[1, 3]), math.atan2(T_WB[1, 0], T_WB[0, 0])
+
+
+def camera_in_world(robot_pose: tuple[float, float, float], T_BC: np.ndarray) -> np.ndarray:
+    """T_WC = T_WB(x, y, theta) @ T_BC."""
+    return planar_transform(*robot_pose) @ np.asarray(T_BC, dtype=float)
+
+
+def ray_azimuths(rays_C: np.ndarray, T_WC: np.ndarray) -> np.ndarray:
+    """World azimuths atan2(y, x) of optical-frame rays (N x 3) after rotation into the world."""
+    r_W = np.asarray(rays_C, dtype=float).reshape(-1, 3) @ T_WC[:3, :3].T
+    return np.arctan2(r_W[:, 1], r_W[:, 0])
+
+
+def optical_axis_heading(T_WC: np.ndarray) -> float:
+    """Azimuth psi of the optical axis (the camera's z) projected on the floor."""
+    z = T_WC[:3, 2]
+    return math.atan2(z[1], z[0])
+
+
+def bearing_width_from_pixels(
+    camera: CameraModel, left_px: np.ndarray, right_px: np.ndarray, T_WC: np.ndarray
+) -> tuple[float, float, float]:
+    """Centre azimuth (world), bearing relative to the optical-axis heading, and apparent width.
+
+    ``left_px``/``right_px`` are the silhouette's extreme left and right pixels (u, v). Returns
+    (azimuth_W, phi, delta) with phi = wrap(azimuth_W - psi) and delta = a_l - a_r (wrapped).
+    """
+    a_l, a_r = ray_azimuths(camera.pixels_to_rays(np.vstack([left_px, right_px])), T_WC)
+    delta = wrap_angle(a_l - a_r)
+    azimuth = wrap_angle(a_r + 0.5 * delta)
+    return azimuth, wrap_angle(azimuth - optical_axis_heading(T_WC)), delta

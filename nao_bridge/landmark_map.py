@@ -1,0 +1,79 @@
+"""The landmark map a user writes for their room (DESIGN.md, config contract).
+
+Shared by the simulator (which draws the landmarks) and the localization (which uses them).
+A colour landmark is a disc whose centroid is the point; an ArUco landmark is a vertical square
+marker of side ``size`` whose outward normal points along ``yaw``. Its corners are ordered as
+``cv2.aruco`` reports them: top-left, top-right, bottom-right, bottom-left, seen from the front::
+
+    n = (cos yaw, sin yaw, 0),  right = (-n) x z_up = (-sin yaw, cos yaw, 0),  up = z
+    corners = c + s/2 * [(-right + up), (right + up), (right - up), (-right - up)]
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Tuple, Union
+
+import numpy as np
+
+from .config import bounds, load
+
+ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
+
+
+@dataclass(frozen=True)
+class Landmark:
+    id: Union[int, str]
+    kind: Literal["color", "aruco"]
+    position: Tuple[float, float, float] = field(metadata=bounds(-100.0, 100.0))
+    color: Optional[str] = None  # colour class (perception config), for kind 'color'
+    diameter: float = field(default=0.08, metadata=bounds(0.005, 2.0))  # colour disc, m
+    dictionary: Optional[Literal[ARUCO_DICTIONARIES]] = None  # type: ignore[valid-type]
+    size: Optional[float] = field(default=None, metadata=bounds(0.01, 2.0))  # ArUco black square side, m
+    yaw: float = field(default=0.0, metadata=bounds(-2 * math.pi, 2 * math.pi))  # ArUco normal, rad
+
+    def __post_init__(self) -> None:
+        if self.kind == "color" and self.color is None:
+            raise ValueError(f"landmark {self.id!r}: kind 'color' needs 'color'")
+        if self.kind == "aruco":
+            if self.dictionary is None or self.size is None:
+                raise ValueError(f"landmark {self.id!r}: kind 'aruco' needs 'dictionary' and 'size'")
+            if not isinstance(self.id, int) or self.id < 0:
+                raise ValueError(f"landmark {self.id!r}: an ArUco id is a non-negative integer")
+
+    @property
+    def normal(self) -> np.ndarray:
+        return np.array([math.cos(self.yaw), math.sin(self.yaw), 0.0])
+
+    def aruco_corners(self) -> np.ndarray:
+        """World corners (4 x 3) in cv2.aruco order: top-left, top-right, bottom-right, bottom-left."""
+        if self.size is None:
+            raise ValueError(f"landmark {self.id!r} is not an ArUco marker")
+        right = np.array([-math.sin(self.yaw), math.cos(self.yaw), 0.0])
+        up = np.array([0.0, 0.0, 1.0])
+        h = 0.5 * self.size
+        c = np.asarray(self.position, dtype=float)
+        return np.array([c - h * right + h * up, c + h * right + h * up, c + h * right - h * up, c - h * right - h * up])
+
+
+@dataclass(frozen=True)
+class LandmarkMap:
+    landmarks: Tuple[Landmark, ...]
+
+    def __post_init__(self) -> None:
+        seen = set()
+        for lm in self.landmarks:
+            key = (lm.kind, str(lm.id))
+            if key in seen:
+                raise ValueError(f"duplicate landmark id {lm.id!r}")
+            seen.add(key)
+
+    def of_kind(self, kind: str) -> Tuple[Landmark, ...]:
+        return tuple(lm for lm in self.landmarks if lm.kind == kind)
+
+
+def load_landmark_map(path: Union[str, Path]) -> LandmarkMap:
+    """Load and validate a landmark map YAML (top-level key ``landmarks``)."""
+    return load(LandmarkMap, [path])

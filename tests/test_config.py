@@ -1,0 +1,80 @@
+"""The config contract: strict typed loading, errors naming file, key path and expectation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from nao_bridge.config import CONFIG_DIR, ConfigError
+from nao_bridge.landmark_map import load_landmark_map
+from nao_bridge.robot_model import load_robot_model
+
+
+def write(tmp_path: Path, text: str, name: str = "override.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_defaults_load_v6_and_v5_override_merges():
+    v6 = load_robot_model()
+    assert v6.name == "nao_v6"
+    assert v6.camera.intrinsics("vga").fx == pytest.approx(587.0)
+    v5 = load_robot_model([CONFIG_DIR / "robots" / "nao_v5.yaml"])
+    assert v5.name == "nao_v5" and v5.camera.sensor == "MT9M114"
+    assert v5.walk == v6.walk  # untouched sections come from the defaults
+
+
+@pytest.mark.parametrize(
+    "text, key, expectation",
+    [
+        ("robot:\n  walk:\n    v_max: fast\n", "robot.walk.v_max", "expected a number in [0.0, 1.0], got 'fast'"),
+        ("robot:\n  walk:\n    v_max: 3.0\n", "robot.walk.v_max", "expected a number in [0.0, 1.0], got 3.0"),
+        ("robot:\n  walk:\n    v_mx: 0.1\n", "robot.walk.v_mx", "unknown key"),
+        ("robot:\n  head:\n    yaw: [1.0]\n", "robot.head.yaw", "expected a list of 2 items, got 1"),
+        ("robot:\n  camera:\n    tilt: .nan\n", "robot.camera.tilt", "expected a number"),
+        ("robot:\n  neck_height: true\n", "robot.neck_height", "expected a number"),
+        ("robot:\n  camera:\n    resolutions:\n      hd: {width: 1280}\n", "robot.camera.resolutions.hd.height", "missing required key"),
+    ],
+)
+def test_bad_override_names_file_key_and_expectation(tmp_path, text, key, expectation):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_robot_model([path])
+    message = str(err.value)
+    assert message.startswith(f"{path}: {key}: "), message
+    assert expectation in message
+
+
+def test_error_in_default_file_is_attributed_to_default(tmp_path):
+    default = write(tmp_path, (CONFIG_DIR / "robots" / "nao_v6.yaml").read_text().replace("v_max: 0.10", "v_max: -1"), "base.yaml")
+    with pytest.raises(ConfigError, match=rf"^{default}: robot.walk.v_max: expected a number"):
+        load_robot_model(default=default)
+
+
+def test_cross_field_rule_reported(tmp_path):
+    path = write(tmp_path, "robot:\n  camera:\n    resolutions:\n      qvga: {width: 320, height: 240, fx: 300, fy: 300, cx: 400, cy: 120, dist: [0,0,0,0,0]}\n")
+    with pytest.raises(ConfigError, match="principal point"):
+        load_robot_model([path])
+
+
+@pytest.mark.parametrize("text", ["robot: [1, 2\n", "- just\n- a list\n", "\x00binary"])
+def test_malformed_yaml_is_a_config_error(tmp_path, text):
+    with pytest.raises(ConfigError, match=str(tmp_path)):
+        load_robot_model([write(tmp_path, text)])
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_robot_model([tmp_path / "nope.yaml"])
+
+
+def test_landmark_map_rules(tmp_path):
+    assert len(load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml").of_kind("aruco")) == 8
+    bad = write(tmp_path, "landmarks:\n  - {id: 3, kind: aruco, position: [0, 0, 0.3], yaw: 0}\n")
+    with pytest.raises(ConfigError, match=r"landmarks.\[0\]: landmark 3: kind 'aruco' needs"):
+        load_landmark_map(bad)
+    dup = write(tmp_path, "landmarks:\n  - {id: a, kind: color, color: red, position: [0,0,0]}\n  - {id: a, kind: color, color: red, position: [1,0,0]}\n")
+    with pytest.raises(ConfigError, match="duplicate landmark id 'a'"):
+        load_landmark_map(dup)
