@@ -1,0 +1,200 @@
+"""The mission as an explicit, pure state machine: events in, decisions out, no I/O.
+
+Phases and transitions (t is the caller's clock, s; the first ``tick`` starts the mission)::
+
+    INIT    --head centred (|yaw|, |pitch - init_pitch| <= head_tolerance) or init_timeout--> SEARCH
+    SEARCH  --a frame saw the object while the robot is localized--> ACTIVE
+            head scan: one ``search_dwell`` per yaw of ``search_head_yaws``, then turn in place at
+            ``search_turn_rate`` for at most search_max_turns * 2 pi / search_turn_rate s
+    ACTIVE  --on_goal (coverage and uncertainty reached)--> DONE (outcome 'completed')
+    any of INIT, SEARCH, ACTIVE --t - t_start >= max_duration--> DONE (outcome 'time_limit')
+    DONE    --next tick--> STOPPING
+    any     --fall, bridge lost, interrupt, object lost, landmarks lost, search exhausted--> STOPPING
+    STOPPING --a state received after the stop says not walking, or stop_timeout--> FINISHED
+
+Abort rules in ACTIVE: the object unseen for ``object_lost_timeout`` s ('object_lost'); no
+landmark fix for ``landmarks_lost_timeout`` s ('landmarks_lost'). The first outcome wins; later
+events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
+before anything else happens, whatever the outcome.
+
+In ACTIVE the mission does not choose the motion: ``Decision.walk`` and ``Decision.head`` are None
+and the caller applies the planner's command and the head servo's target.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Optional, Tuple
+
+from nao_bridge.config import bounds
+
+
+class Phase(str, Enum):
+    INIT = "init"
+    SEARCH = "search"
+    ACTIVE = "active"
+    DONE = "done"
+    STOPPING = "stopping"
+    FINISHED = "finished"
+
+
+class Outcome(str, Enum):
+    COMPLETED = "completed"
+    TIME_LIMIT = "time_limit"
+    OBJECT_NOT_FOUND = "object_not_found"
+    OBJECT_LOST = "object_lost"
+    LANDMARKS_LOST = "landmarks_lost"
+    FALLEN = "fallen"
+    BRIDGE_LOST = "bridge_lost"
+    INTERRUPTED = "interrupted"
+
+    @property
+    def success(self) -> bool:
+        return self is Outcome.COMPLETED
+
+
+@dataclass(frozen=True)
+class MissionParams:
+    max_duration: float = field(default=240.0, metadata=bounds(1.0, 86400.0))
+    init_timeout: float = field(default=3.0, metadata=bounds(0.0, 60.0))
+    head_tolerance: float = field(default=0.05, metadata=bounds(0.001, 1.0))
+    init_pitch: float = field(default=0.2, metadata=bounds(-0.6, 0.5))
+    search_head_yaws: Tuple[float, ...] = field(default=(0.0, 0.7, 1.4, -0.7, -1.4), metadata=bounds(-2.0, 2.0))
+    search_dwell: float = field(default=0.8, metadata=bounds(0.05, 30.0))
+    search_turn_rate: float = field(default=0.35, metadata=bounds(0.01, 2.0))
+    search_max_turns: float = field(default=1.25, metadata=bounds(0.0, 10.0))
+    object_lost_timeout: float = field(default=6.0, metadata=bounds(0.1, 600.0))
+    landmarks_lost_timeout: float = field(default=10.0, metadata=bounds(0.1, 600.0))
+    stop_timeout: float = field(default=2.0, metadata=bounds(0.0, 60.0))
+
+    @property
+    def search_turn_duration(self) -> float:
+        return self.search_max_turns * 2.0 * math.pi / self.search_turn_rate
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the robot should do now. ``walk``/``head`` None: not the mission's to choose."""
+
+    phase: Phase
+    walk: Optional[Tuple[float, float, float]] = None  # (v, vy, omega)
+    head: Optional[Tuple[float, float]] = None  # (yaw, pitch)
+    stop: bool = False
+    outcome: Optional[Outcome] = None
+    reason: str = ""
+
+    @property
+    def finished(self) -> bool:
+        return self.phase is Phase.FINISHED
+
+
+class Mission:
+    """The state machine. Feed events in time order, call ``tick`` once per control period."""
+
+    def __init__(self, params: MissionParams):
+        self.params = params
+        self.phase = Phase.INIT
+        self.outcome: Optional[Outcome] = None
+        self.reason = ""
+        self._t_start: Optional[float] = None
+        self._t_phase = 0.0
+        self._head: Optional[Tuple[float, float]] = None
+        self._walking = True  # unknown until the robot reports otherwise
+        self._t_state = -math.inf
+        self._t_object: Optional[float] = None
+        self._t_fix: Optional[float] = None
+
+    # events -----------------------------------------------------------------------------------
+
+    def on_state(self, t: float, fallen: bool, walking: bool, head_yaw: float, head_pitch: float) -> None:
+        self._head = (head_yaw, head_pitch)
+        self._walking, self._t_state = walking, t
+        if fallen:
+            self._end(t, Outcome.FALLEN, "the robot fell")
+
+    def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool) -> None:
+        """One processed frame: was the object measured, did landmarks fix the pose, is a pose known."""
+        if object_seen:
+            self._t_object = t
+        if landmark_fix:
+            self._t_fix = t
+        if self.phase is Phase.SEARCH and object_seen and localized:
+            self._enter(Phase.ACTIVE, t)
+
+    def on_goal(self, t: float, reason: str) -> None:
+        if self.phase is Phase.ACTIVE:
+            self._end(t, Outcome.COMPLETED, reason, abort=False)
+
+    def on_bridge_lost(self, t: float) -> None:
+        self._end(t, Outcome.BRIDGE_LOST, "the bridge went away (liveliness token lost)")
+
+    def on_interrupt(self, t: float, signal_name: str) -> None:
+        self._end(t, Outcome.INTERRUPTED, f"interrupted by {signal_name}")
+
+    # decisions --------------------------------------------------------------------------------
+
+    def tick(self, t: float) -> Decision:
+        p = self.params
+        if self._t_start is None:
+            self._t_start = self._t_phase = t
+        if self.phase in (Phase.INIT, Phase.SEARCH, Phase.ACTIVE) and t - self._t_start >= p.max_duration:
+            self._end(t, Outcome.TIME_LIMIT, f"time limit of {p.max_duration:g} s reached", abort=False)
+        elapsed = t - self._t_phase
+
+        if self.phase is Phase.INIT:
+            if elapsed >= p.init_timeout or self._head_centred():
+                self._enter(Phase.SEARCH, t)
+                elapsed = 0.0
+            else:
+                return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(0.0, p.init_pitch))
+        if self.phase is Phase.SEARCH:
+            return self._search(t, elapsed)
+        if self.phase is Phase.ACTIVE:
+            if self._t_object is None or t - self._t_object > p.object_lost_timeout:
+                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s")
+            elif self._t_fix is None or t - self._t_fix > p.landmarks_lost_timeout:
+                self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s")
+            else:
+                return Decision(self.phase)
+        if self.phase is Phase.DONE:
+            decision = self._stop_decision()
+            self._enter(Phase.STOPPING, t)
+            return decision
+        stopped = not self._walking and self._t_state > self._t_phase  # reported after the stop began
+        if self.phase is Phase.STOPPING and (stopped or elapsed >= p.stop_timeout):
+            self._enter(Phase.FINISHED, t)
+        return self._stop_decision()
+
+    def _search(self, t: float, elapsed: float) -> Decision:
+        p = self.params
+        scan_time = p.search_dwell * len(p.search_head_yaws)
+        if elapsed < scan_time:
+            yaw = p.search_head_yaws[int(elapsed // p.search_dwell)]
+            return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(yaw, p.init_pitch))
+        if elapsed - scan_time >= p.search_turn_duration:
+            self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not found after a head scan and {p.search_max_turns:g} turns")
+            return self.tick(t)
+        return Decision(self.phase, walk=(0.0, 0.0, p.search_turn_rate), head=(0.0, p.init_pitch))
+
+    # helpers ----------------------------------------------------------------------------------
+
+    def _head_centred(self) -> bool:
+        if self._head is None:
+            return False
+        tol = self.params.head_tolerance
+        return abs(self._head[0]) <= tol and abs(self._head[1] - self.params.init_pitch) <= tol
+
+    def _stop_decision(self) -> Decision:
+        return Decision(self.phase, walk=(0.0, 0.0, 0.0), stop=True, outcome=self.outcome, reason=self.reason)
+
+    def _enter(self, phase: Phase, t: float) -> None:
+        self.phase = phase
+        self._t_phase = t
+
+    def _end(self, t: float, outcome: Outcome, reason: str, abort: bool = True) -> None:
+        if self.outcome is not None:
+            return
+        self.outcome, self.reason = outcome, reason
+        self._enter(Phase.STOPPING if abort else Phase.DONE, t)

@@ -1,0 +1,158 @@
+"""The mission state machine: every transition and every outcome, driven by synthetic events."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from agent.mission import Mission, MissionParams, Outcome, Phase
+from nao_bridge.config import CONFIG_DIR, ConfigError, load
+
+P = MissionParams(max_duration=100.0, init_timeout=2.0, search_head_yaws=(0.0, 0.5, -0.5), search_dwell=1.0,
+                  search_turn_rate=0.5, search_max_turns=1.0, object_lost_timeout=3.0,
+                  landmarks_lost_timeout=5.0, stop_timeout=1.0)
+DT = 0.1
+
+
+def run_until(mission: Mission, t: float, t_end: float, on_tick=None):
+    decision = None
+    while t < t_end - 1e-9:
+        if on_tick:
+            on_tick(mission, t)
+        decision = mission.tick(t)
+        t = round(t + DT, 6)
+    return t, decision
+
+
+def active_mission() -> tuple[Mission, float]:
+    mission = Mission(P)
+    mission.tick(0.0)
+    mission.on_state(0.05, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
+    mission.tick(0.1)
+    assert mission.phase is Phase.SEARCH
+    mission.on_frame(0.2, object_seen=True, landmark_fix=True, localized=True)
+    assert mission.phase is Phase.ACTIVE
+    return mission, 0.2
+
+
+def test_default_yaml_matches_dataclass_defaults():
+    assert load(MissionParams, [CONFIG_DIR / "mission.yaml"], section="mission") == MissionParams()
+
+
+def test_bad_value_is_named(tmp_path):
+    bad = tmp_path / "m.yaml"
+    bad.write_text("mission:\n  search_dwell: -1\n")
+    with pytest.raises(ConfigError, match=r"mission.search_dwell: expected a number in \[0.05"):
+        load(MissionParams, [CONFIG_DIR / "mission.yaml", bad], section="mission")
+
+
+def test_init_centres_head_then_times_out_into_search():
+    mission = Mission(P)
+    d = mission.tick(0.0)
+    assert d.phase is Phase.INIT and d.head == (0.0, P.init_pitch) and d.walk == (0.0, 0.0, 0.0)
+    mission.on_state(0.5, fallen=False, walking=False, head_yaw=0.3, head_pitch=0.0)  # not centred
+    assert mission.tick(1.0).phase is Phase.INIT
+    assert mission.tick(2.0).phase is Phase.SEARCH  # init_timeout
+
+
+def test_search_scans_head_then_turns_then_gives_up():
+    mission = Mission(P)
+    mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
+    assert mission.tick(0.0).phase is Phase.SEARCH  # head already centred
+    heads = [mission.tick(t).head[0] for t in (0.5, 1.5, 2.5)]
+    assert heads == [0.0, 0.5, -0.5]
+    turning = mission.tick(3.5)
+    assert turning.walk == (0.0, 0.0, P.search_turn_rate) and turning.head == (0.0, P.init_pitch)
+    turn_end = 3.0 + 2 * math.pi / P.search_turn_rate
+    assert mission.tick(turn_end - 0.1).phase is Phase.SEARCH
+    d = mission.tick(turn_end + 0.01)
+    assert d.outcome is Outcome.OBJECT_NOT_FOUND and d.stop and d.phase is Phase.STOPPING
+
+
+def test_object_seen_without_pose_keeps_searching():
+    mission = Mission(P)
+    mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
+    mission.tick(0.0)
+    mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
+    assert mission.phase is Phase.SEARCH
+
+
+def test_active_leaves_motion_to_the_planner_and_completes_on_goal():
+    mission, t = active_mission()
+    d = mission.tick(0.3)
+    assert d.phase is Phase.ACTIVE and d.walk is None and d.head is None and not d.stop
+    mission.on_goal(0.35, "coverage 0.95 and uncertainty reached")
+    d = mission.tick(0.4)
+    assert d.phase is Phase.DONE and d.stop and d.outcome is Outcome.COMPLETED and d.outcome.success
+    assert mission.tick(0.5).phase is Phase.STOPPING
+    mission.on_state(0.55, fallen=False, walking=False, head_yaw=0.0, head_pitch=0.0)
+    d = mission.tick(0.6)
+    assert d.finished and d.stop and d.reason.startswith("coverage")
+
+
+def test_stopping_waits_for_the_robot_or_the_timeout():
+    mission, t = active_mission()
+    mission.on_state(0.3, fallen=False, walking=True, head_yaw=0.0, head_pitch=0.0)
+    mission.on_goal(0.3, "goal")
+    mission.tick(0.4)
+    assert mission.tick(0.5).phase is Phase.STOPPING
+    assert mission.tick(1.0).phase is Phase.STOPPING  # still walking
+    assert mission.tick(1.5).finished  # stop_timeout after entering STOPPING
+
+
+def keep_seeing(mission: Mission, t: float) -> None:
+    mission.on_frame(t, object_seen=True, landmark_fix=True, localized=True)
+
+
+@pytest.mark.parametrize(
+    "event, outcome",
+    [
+        (lambda m, t: m.on_state(t, fallen=True, walking=False, head_yaw=0, head_pitch=0), Outcome.FALLEN),
+        (lambda m, t: m.on_bridge_lost(t), Outcome.BRIDGE_LOST),
+        (lambda m, t: m.on_interrupt(t, "SIGTERM"), Outcome.INTERRUPTED),
+    ],
+)
+@pytest.mark.parametrize("phase_time", [0.0, 0.3])  # during INIT, during ACTIVE
+def test_external_aborts_stop_the_robot_and_are_final(event, outcome, phase_time):
+    mission, t = (Mission(P), 0.0) if phase_time == 0.0 else active_mission()
+    mission.tick(t)
+    event(mission, t + 0.05)
+    d = mission.tick(t + 0.1)
+    assert d.phase is Phase.STOPPING and d.stop and d.walk == (0.0, 0.0, 0.0) and d.outcome is outcome
+    assert not d.outcome.success and d.reason
+    mission.on_goal(t + 0.15, "late goal")  # cannot overwrite the first outcome
+    mission.on_interrupt(t + 0.15, "SIGINT")
+    assert mission.tick(t + 0.2).outcome is outcome
+
+
+def test_object_lost_after_timeout():
+    mission, t = active_mission()
+    t, d = run_until(mission, 0.3, 0.2 + P.object_lost_timeout - 0.05,
+                     on_tick=lambda m, t: m.on_frame(t, object_seen=False, landmark_fix=True, localized=True))
+    assert d.phase is Phase.ACTIVE
+    t, d = run_until(mission, t, t + 0.3)
+    assert d.outcome is Outcome.OBJECT_LOST and d.stop
+
+
+def test_landmarks_lost_after_timeout():
+    mission, t = active_mission()
+    seen_only = lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False, localized=True)  # noqa: E731
+    t, d = run_until(mission, 0.3, 0.2 + P.landmarks_lost_timeout - 0.05, on_tick=seen_only)
+    assert d.phase is Phase.ACTIVE
+    t, d = run_until(mission, t, t + 0.3, on_tick=seen_only)
+    assert d.outcome is Outcome.LANDMARKS_LOST
+
+
+def test_time_limit_ends_as_done_not_abort():
+    mission, t = active_mission()
+    t, d = run_until(mission, 0.3, P.max_duration + 0.05, on_tick=keep_seeing)
+    assert d.outcome is Outcome.TIME_LIMIT and d.stop
+    assert not d.outcome.success
+
+
+def test_same_events_same_decisions():
+    def trace():
+        mission, _ = active_mission()
+        return [mission.tick(round(0.3 + i * DT, 6)) for i in range(100)]
+    assert trace() == trace()
