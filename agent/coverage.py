@@ -1,0 +1,90 @@
+"""Coverage of the object's surface: N0 bins on the cylinder around the estimated object.
+
+Bin i (i = 0 .. N0-1) sits at azimuth a_i = 2 pi (i + 1/2) / N0 around the estimated centre o with
+radius r: point q_i = o + r n_i, outward normal n_i = (cos a_i, sin a_i). A camera at c with
+optical-axis heading psi and horizontal field of view hfov sees bin i when all three hold::
+
+    facing:   n_i . (c - q_i) >= |c - q_i| cos(alpha_max)           (normal within alpha_max of the camera)
+    in view:  |wrap(atan2(q_i - c) - psi)| <= hfov / 2                (inside the horizontal field of view)
+    range:    d_lo <= |c - q_i| <= d_hi                               (usable distance)
+
+alpha_max <= pi/2, so a facing bin is never hidden by the (convex) cylinder itself. The coverage
+after a path is the union over its cameras, N_v = |U_t seen(c_t)|, re-evaluated against the
+current estimate (the bins move with it) from the executed camera poses, plus the predicted ones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import List, Tuple
+
+import numpy as np
+
+from agent.camera import wrap_angle
+from nao_bridge.config import bounds
+
+
+@dataclass(frozen=True)
+class CoverageParams:
+    """Bins on the cylinder and when a bin counts as seen (angles in rad, distances in m)."""
+
+    bins: int = field(metadata=bounds(4, 3600))
+    facing_angle: float = field(metadata=bounds(0.01, math.pi / 2))
+    distance_range: Tuple[float, float] = field(metadata=bounds(0.0, 100.0))
+
+    def __post_init__(self) -> None:
+        if self.distance_range[0] >= self.distance_range[1]:
+            raise ValueError(f"distance_range {self.distance_range} is not increasing")
+
+
+def bin_angles(n_bins: int) -> np.ndarray:
+    """Azimuths a_i of the bin centres, (N0,)."""
+    return 2.0 * np.pi * (np.arange(n_bins) + 0.5) / n_bins
+
+
+def bins_seen(x: np.ndarray, cams: np.ndarray, params: CoverageParams, hfov: float) -> np.ndarray:
+    """Which bins of the cylinder x = (xo, yo, r) each camera (..., 3) sees: (..., N0) bool."""
+    cams = np.asarray(cams, dtype=float)
+    a = bin_angles(params.bins)
+    nx, ny = np.cos(a), np.sin(a)
+    vx = cams[..., 0, None] - (x[0] + x[2] * nx)  # c - q_i
+    vy = cams[..., 1, None] - (x[1] + x[2] * ny)
+    dist = np.hypot(vx, vy)
+    facing = nx * vx + ny * vy >= dist * math.cos(params.facing_angle)
+    in_view = np.abs(wrap_angle(np.arctan2(-vy, -vx) - cams[..., 2, None])) <= 0.5 * hfov
+    in_range = (dist >= params.distance_range[0]) & (dist <= params.distance_range[1])
+    return facing & in_view & in_range
+
+
+def seen_count(x: np.ndarray, cams: np.ndarray, already: np.ndarray, params: CoverageParams, hfov: float) -> np.ndarray:
+    """N_v for camera sequences (..., D, 3) added to the bins ``already`` seen (N0,): (...,) int."""
+    return (bins_seen(x, cams, params, hfov).any(axis=-2) | already).sum(axis=-1)
+
+
+class Coverage:
+    """The executed camera poses; the bins they have seen, evaluated against any estimate."""
+
+    def __init__(self, params: CoverageParams, hfov: float):
+        self.params = params
+        self.hfov = hfov
+        self._cams: List[Tuple[float, float, float]] = []
+
+    def add(self, cam: np.ndarray) -> None:
+        """Record the planar pose (c_x, c_y, psi) of a camera that captured a frame."""
+        cam = np.asarray(cam, dtype=float).reshape(3)
+        if not np.all(np.isfinite(cam)):
+            raise ValueError(f"camera pose must be finite, got {cam.tolist()}")
+        self._cams.append(tuple(cam))
+
+    @property
+    def cameras(self) -> np.ndarray:
+        return np.asarray(self._cams, dtype=float).reshape(-1, 3)
+
+    def seen(self, x: np.ndarray) -> np.ndarray:
+        """Bins (N0,) seen from the executed path, for the object estimate x."""
+        return bins_seen(np.asarray(x, dtype=float), self.cameras, self.params, self.hfov).any(axis=0)
+
+    def fraction(self, x: np.ndarray) -> float:
+        """N_v / N_0 of the executed path."""
+        return float(self.seen(x).mean())
