@@ -1,0 +1,353 @@
+"""Extended Kalman filter on an unknown vertical cylinder: centre (xo, yo) and radius r on the floor.
+
+State and camera (world frame W, SI units)::
+
+    x = (xo, yo, r),   cam = (cx, cy, psi)
+
+``cam`` is the camera centre projected on the floor and the heading of its optical axis
+(:func:`agent.camera.optical_axis_heading`) at the frame's capture time.
+
+Measurement (DESIGN.md slip 1 corrected; the paper's form is kept behind ``width_model``)::
+
+    dx = xo - cx,  dy = yo - cy,  d = sqrt(dx^2 + dy^2)
+    phi   = wrap(atan2(dy, dx) - psi)                     bearing of the centre
+    delta = 2 asin(r / d)           ("asin", exact: the angle between the two tangent planes)
+    delta = atan(r / d)             ("paper_atan", as printed; with real widths r comes out ~2x)
+
+Analytic Jacobian H = dh/dx (rows phi, delta)::
+
+    dphi/d(xo, yo, r)   = (-dy / d^2,  dx / d^2,  0)
+    asin:  ddelta/d(xo, yo, r) = (-2 r dx, -2 r dy, 2 d^2) / (d^2 sqrt(d^2 - r^2))
+    atan:  ddelta/d(xo, yo, r) = (-r dx / d, -r dy / d, d) / (d^2 + r^2)
+
+Prediction (the object is static; a random walk keeps the filter from overconfidence)::
+
+    x- = x,   P- = P + Q dt,   Q = diag(q_x^2, q_y^2, q_r^2)
+
+Update (Joseph form, wrapped bearing innovation, chi-square gate on the NIS)::
+
+    nu = (wrap(phi_m - phi(x-)), delta_m - delta(x-)),   S = H P- H^T + R,   R = diag(s_phi^2, s_delta^2)
+    NIS = nu^T S^-1 nu;  accept iff NIS <= chi2.ppf(gate_probability, dof)
+    K = P- H^T S^-1,   x+ = x- + K nu,   P+ = (I - K H) P- (I - K H)^T + K R K^T
+
+Without a width (``delta is None``) only the bearing row is used (dof 1). An update whose camera
+lies inside the estimated cylinder (d <= r), or whose inputs are not finite, is rejected with a
+reason; the state never becomes NaN. After an update the radius is projected onto r >= min_radius.
+
+Initialization from the first observation u = (phi, delta, r0) with the radius prior
+r0 ~ N(radius_prior, radius_prior_std^2): the range follows from the width model,
+d = r0 / sin(delta/2) (asin) or d = r0 / tan(delta) (paper_atan), and::
+
+    x0 = (cx + d cos(psi + phi), cy + d sin(psi + phi), r0),   P0 = G diag(s_phi^2, s_delta^2, s_r0^2) G^T
+
+with G = dx0/du: the covariance is the measurement noise and the radius prior propagated, so the
+range is as uncertain as the radius and fully correlated with it. Without a width, u = (phi, d, r0)
+with d ~ N(default_range, default_range_std^2), independent of r0.
+
+Expected covariance for the planner (DESIGN.md item 7): K candidate camera sequences of D steps are
+rolled forward with synthesized noise-free observations at the predicted mean, so the innovation
+is zero, the mean stays and only the covariance evolves::
+
+    P_k,j = P_k,j-1 + Q_step;   if visible[k, j]: P_k,j = Joseph update with H(x, cam_k,j)
+
+batched over K with closed-form 2x2 inverses (:func:`rollout_covariance`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Sequence, Tuple, Union
+
+import numpy as np
+from scipy.stats import chi2
+
+from agent.camera import wrap_angle
+from nao_bridge.config import CONFIG_DIR, bounds, load
+
+WidthModel = Literal["asin", "paper_atan"]
+
+# The nominal measurement noise of the spec (0.5 deg, 0.3 deg), the defaults of config/ekf.yaml
+# (a test keeps the two equal). Used by rollout_covariance when the caller passes no R.
+NOMINAL_R = np.diag([math.radians(0.5), math.radians(0.3)]) ** 2
+
+
+@dataclass(frozen=True)
+class EKFParams:
+    """Noise, priors and gate of the object filter (config/ekf.yaml, section ``ekf``)."""
+
+    sigma_phi: float = field(metadata=bounds(1e-6, 0.5))  # bearing noise std, rad
+    sigma_delta: float = field(metadata=bounds(1e-6, 0.5))  # width noise std, rad
+    process_noise: Tuple[float, float, float] = field(metadata=bounds(0.0, 1.0))  # std per sqrt(s) of xo, yo, r
+    radius_prior: float = field(metadata=bounds(1e-3, 10.0))  # m
+    radius_prior_std: float = field(metadata=bounds(1e-4, 10.0))  # m
+    default_range: float = field(metadata=bounds(0.05, 100.0))  # m, bearing-only first observation
+    default_range_std: float = field(metadata=bounds(1e-3, 100.0))  # m
+    gate_probability: float = field(metadata=bounds(0.5, 1.0 - 1e-12))
+    min_radius: float = field(metadata=bounds(0.0, 10.0))  # m
+    width_model: WidthModel
+
+    @property
+    def R(self) -> np.ndarray:
+        """Measurement noise covariance of (phi, delta)."""
+        return np.diag([self.sigma_phi, self.sigma_delta]) ** 2
+
+    def Q(self, dt: float) -> np.ndarray:
+        """Process noise accumulated over ``dt`` seconds."""
+        return np.diag(np.square(self.process_noise)) * dt
+
+
+def load_ekf_params(files: Sequence[Union[str, Path]] = ()) -> EKFParams:
+    """The ``ekf`` section of config/ekf.yaml merged with override ``files``."""
+    return load(EKFParams, [CONFIG_DIR / "ekf.yaml", *files], section="ekf")
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """Outcome of one observation. ``nis``/``innovation`` are None when the input was invalid."""
+
+    accepted: bool
+    nis: Optional[float]
+    dof: int
+    innovation: Optional[np.ndarray]
+    reason: str  # "ok", or why the observation was rejected
+
+
+@dataclass
+class FilterStats:
+    """Counters the station logs: observations accepted, rejected by the gate, rejected as invalid."""
+
+    accepted: int = 0
+    gated: int = 0
+    invalid: int = 0
+
+    def as_dict(self) -> dict:
+        return {"accepted": self.accepted, "gated": self.gated, "invalid": self.invalid}
+
+
+def _geometry(x: np.ndarray, cams: np.ndarray) -> Tuple[np.ndarray, ...]:
+    x = np.asarray(x, dtype=float)
+    cams = np.asarray(cams, dtype=float)
+    dx = x[..., 0] - cams[..., 0]
+    dy = x[..., 1] - cams[..., 1]
+    return dx, dy, dx * dx + dy * dy, x[..., 2]
+
+
+def measure(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
+    """Predicted (phi, delta) of state ``x`` (3,) or (..., 3) from cameras ``cams`` (..., 3) -> (..., 2).
+
+    A camera inside the cylinder (d <= r) sees it fill half the world: delta saturates at pi (asin).
+    """
+    dx, dy, d2, r = _geometry(x, cams)
+    d = np.sqrt(d2)
+    phi = wrap_angle(np.arctan2(dy, dx) - np.asarray(cams, dtype=float)[..., 2])
+    if width_model == "asin":
+        delta = 2.0 * np.arcsin(np.clip(r / np.maximum(d, 1e-12), 0.0, 1.0))
+    else:
+        delta = np.arctan2(r, d)
+    return np.stack(np.broadcast_arrays(phi, delta), axis=-1)
+
+
+def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
+    """H = d(phi, delta)/d(xo, yo, r) for state ``x`` and cameras ``cams`` (..., 3) -> (..., 2, 3).
+
+    Inside the cylinder (d <= r) the asin width row is not defined; it is set to zero there.
+    """
+    dx, dy, d2, r = _geometry(x, cams)
+    dx, dy, d2, r = np.broadcast_arrays(dx, dy, d2, r)
+    H = np.zeros(dx.shape + (2, 3))
+    H[..., 0, 0] = -dy / d2
+    H[..., 0, 1] = dx / d2
+    if width_model == "asin":
+        slack = d2 - r * r
+        outside = slack > 0.0
+        denom = np.where(outside, d2 * np.sqrt(np.where(outside, slack, 1.0)), np.inf)
+        H[..., 1, 0] = -2.0 * r * dx / denom
+        H[..., 1, 1] = -2.0 * r * dy / denom
+        H[..., 1, 2] = 2.0 * d2 / denom
+    else:
+        d = np.sqrt(d2)
+        denom = d2 + r * r
+        H[..., 1, 0] = -r * dx / (d * denom)
+        H[..., 1, 1] = -r * dy / (d * denom)
+        H[..., 1, 2] = d / denom
+    return H
+
+
+def rollout_covariance(
+    x: np.ndarray,
+    P: np.ndarray,
+    cams: np.ndarray,
+    visible: Optional[np.ndarray] = None,
+    Q_step: Optional[np.ndarray] = None,
+    *,
+    R: Optional[np.ndarray] = None,
+    width_model: WidthModel = "asin",
+) -> np.ndarray:
+    """Covariance after rolling the filter along each of K camera sequences ``cams`` (K, D, 3) -> (K, 3, 3).
+
+    Each step adds ``Q_step`` (3x3, default none) and, where ``visible[k, j]`` (K, D bool, default
+    all) and the camera is outside the estimated cylinder, applies a noise-free update at the
+    mean ``x`` with measurement noise ``R`` (2x2, default :data:`NOMINAL_R`; pass ``params.R``).
+    ``P`` is (3, 3) or one per candidate (K, 3, 3).
+    """
+    x = np.asarray(x, dtype=float)
+    cams = np.asarray(cams, dtype=float)
+    if cams.ndim != 3 or cams.shape[-1] != 3:
+        raise ValueError(f"cams must have shape (K, D, 3), got {cams.shape}")
+    n_cand, n_steps = cams.shape[:2]
+    R = NOMINAL_R if R is None else np.asarray(R, dtype=float)
+    Q_step = np.zeros((3, 3)) if Q_step is None else np.asarray(Q_step, dtype=float)
+    mask = np.ones((n_cand, n_steps), dtype=bool) if visible is None else np.asarray(visible, dtype=bool)
+    if mask.shape != (n_cand, n_steps):
+        raise ValueError(f"visible must have shape {(n_cand, n_steps)}, got {mask.shape}")
+    _, _, d2, r = _geometry(x, cams)
+    mask = mask & (d2 > r * r)
+    H = measurement_jacobian(x, cams, width_model)  # (K, D, 2, 3)
+    P = np.broadcast_to(np.asarray(P, dtype=float), (n_cand, 3, 3)).copy()
+    eye = np.eye(3)
+    for j in range(n_steps):
+        P += Q_step
+        Hj = H[:, j]
+        PHt = P @ Hj.transpose(0, 2, 1)  # (K, 3, 2)
+        S = Hj @ PHt + R
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        S_inv = np.empty_like(S)
+        S_inv[:, 0, 0] = S[:, 1, 1]
+        S_inv[:, 1, 1] = S[:, 0, 0]
+        S_inv[:, 0, 1] = -S[:, 0, 1]
+        S_inv[:, 1, 0] = -S[:, 1, 0]
+        S_inv /= det[:, None, None]
+        gain = PHt @ S_inv  # (K, 3, 2)
+        A = eye - gain @ Hj
+        updated = A @ P @ A.transpose(0, 2, 1) + gain @ R @ gain.transpose(0, 2, 1)
+        P = np.where(mask[:, j, None, None], updated, P)
+    return 0.5 * (P + P.transpose(0, 2, 1))
+
+
+def _range_from_width(r0: float, delta: float, width_model: WidthModel) -> Tuple[float, float, float]:
+    """Range d implied by radius r0 and width delta, and its derivatives dd/ddelta, dd/dr0."""
+    if width_model == "asin":
+        s, c = math.sin(0.5 * delta), math.cos(0.5 * delta)
+        return r0 / s, -0.5 * r0 * c / (s * s), 1.0 / s
+    t, s = math.tan(delta), math.sin(delta)
+    return r0 / t, -r0 / (s * s), 1.0 / t
+
+
+class ObjectEKF:
+    """The object filter. ``x`` (3,) and ``P`` (3, 3) are None until :meth:`initialize` succeeds."""
+
+    def __init__(self, params: EKFParams):
+        self.params = params
+        self.x: Optional[np.ndarray] = None
+        self.P: Optional[np.ndarray] = None
+        self.stats = FilterStats()
+        self._R = params.R
+        self._gate = {dof: float(chi2.ppf(params.gate_probability, dof)) for dof in (1, 2)}
+        self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
+
+    @property
+    def initialized(self) -> bool:
+        return self.x is not None
+
+    def gate(self, dof: int) -> float:
+        """NIS threshold for a measurement with ``dof`` components."""
+        return self._gate[dof]
+
+    def copy(self) -> "ObjectEKF":
+        other = ObjectEKF(self.params)
+        other.x = None if self.x is None else self.x.copy()
+        other.P = None if self.P is None else self.P.copy()
+        other.stats = FilterStats(**self.stats.as_dict())
+        return other
+
+    def snapshot(self) -> dict:
+        """Plain-Python state for logs: estimate, covariance, counters."""
+        return {
+            "x": None if self.x is None else self.x.tolist(),
+            "P": None if self.P is None else self.P.tolist(),
+            "stats": self.stats.as_dict(),
+        }
+
+    def _invalid(self, cam: Sequence[float], phi: float, delta: Optional[float]) -> Optional[str]:
+        if np.shape(cam) != (3,) or not np.all(np.isfinite(cam)):
+            return f"camera pose must be 3 finite numbers (cx, cy, psi), got {cam!r}"
+        if not math.isfinite(phi):
+            return f"bearing is not finite: {phi!r}"
+        if delta is not None and not (math.isfinite(delta) and 0.0 < delta < self._max_width):
+            return f"width must be finite and in (0, {self._max_width:.4f}) rad, got {delta!r}"
+        return None
+
+    def _reject_invalid(self, reason: str, dof: int) -> UpdateResult:
+        self.stats.invalid += 1
+        return UpdateResult(False, None, dof, None, reason)
+
+    def initialize(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
+        """Set the estimate from a first observation (see the module docstring); replaces any previous one."""
+        p = self.params
+        dof = 1 if delta is None else 2
+        reason = self._invalid(cam, phi, delta)
+        if reason is not None:
+            return self._reject_invalid(reason, dof)
+        cx, cy, psi = (float(v) for v in cam)
+        heading = psi + phi
+        c, s = math.cos(heading), math.sin(heading)
+        if delta is None:
+            rng, d_rng, d_r = p.default_range, 1.0, 0.0
+            noise = np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2
+        else:
+            rng, d_rng, d_r = _range_from_width(p.radius_prior, delta, p.width_model)
+            noise = np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2
+        # G = d(xo, yo, r) / d(phi, delta or range, r0)
+        G = np.array([[-rng * s, c * d_rng, c * d_r], [rng * c, s * d_rng, s * d_r], [0.0, 0.0, 1.0]])
+        self.x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
+        self.P = G @ noise @ G.T
+        self.stats.accepted += 1
+        return UpdateResult(True, None, dof, None, "initialized")
+
+    def predict(self, dt: float) -> None:
+        """Add the process noise of ``dt`` seconds (the object is static)."""
+        if not (math.isfinite(dt) and dt >= 0.0):
+            raise ValueError(f"predict: dt must be finite and >= 0 s, got {dt!r}")
+        if self.P is not None:
+            self.P = self.P + self.params.Q(dt)
+
+    def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
+        """Fuse one observation (bearing-only when ``delta`` is None); gated, never leaves a NaN."""
+        dof = 1 if delta is None else 2
+        if self.x is None or self.P is None:
+            return self._reject_invalid("filter not initialized", dof)
+        reason = self._invalid(cam, phi, delta)
+        if reason is not None:
+            return self._reject_invalid(reason, dof)
+        cam = np.asarray(cam, dtype=float)
+        dx, dy = self.x[0] - cam[0], self.x[1] - cam[1]
+        if math.hypot(dx, dy) <= self.x[2]:
+            return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
+        model = self.params.width_model
+        predicted = measure(self.x, cam, model)
+        H = measurement_jacobian(self.x, cam, model)
+        nu = np.array([wrap_angle(phi - predicted[0]), 0.0 if delta is None else delta - predicted[1]])
+        R = self._R
+        if delta is None:
+            H, nu, R = H[:1], nu[:1], R[:1, :1]
+        PHt = self.P @ H.T
+        S = H @ PHt + R
+        S_inv = np.linalg.inv(S)
+        nis = float(nu @ S_inv @ nu)
+        if not math.isfinite(nis):
+            return self._reject_invalid("innovation covariance is degenerate", dof)
+        if nis > self._gate[dof]:
+            self.stats.gated += 1
+            return UpdateResult(False, nis, dof, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
+        gain = PHt @ S_inv
+        A = np.eye(3) - gain @ H
+        x = self.x + gain @ nu
+        P = A @ self.P @ A.T + gain @ R @ gain.T
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            return self._reject_invalid("update produced a non-finite state", dof)
+        x[2] = max(x[2], self.params.min_radius)
+        self.x, self.P = x, 0.5 * (P + P.T)
+        self.stats.accepted += 1
+        return UpdateResult(True, nis, dof, nu, "ok")
