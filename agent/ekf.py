@@ -30,6 +30,13 @@ Update (Joseph form, wrapped bearing innovation, chi-square gate on the NIS)::
     NIS = nu^T S^-1 nu;  accept iff NIS <= chi2.ppf(gate_probability, dof)
     K = P- H^T S^-1,   x+ = x- + K nu,   P+ = (I - K H) P- (I - K H)^T + K R K^T
 
+The update is iterated (IEKF, Gauss-Newton on the MAP cost; ``iterations`` = 1 is the plain EKF):
+relinearize at the iterate x_i, H_i = H(x_i), K_i = P- H_i^T (H_i P- H_i^T + R)^-1,
+x_i+1 = x- + K_i (z - h(x_i) - H_i (x- - x_i)), and P+ uses the last K_i, H_i. From the first
+views the range is as uncertain as the radius prior (100 %), and a single linearization there
+overshoots and can lock the gate out for good; a few iterations remove that (docs/estimation.md).
+The gate uses the NIS at the prior mean.
+
 Without a width (``delta is None``) only the bearing row is used (dof 1). An update whose camera
 lies inside the estimated cylinder (d <= r), or whose inputs are not finite, is rejected with a
 reason; the state never becomes NaN. After an update the radius is projected onto r >= min_radius.
@@ -86,6 +93,7 @@ class EKFParams:
     default_range_std: float = field(metadata=bounds(1e-3, 100.0))  # m
     gate_probability: float = field(metadata=bounds(0.5, 1.0 - 1e-12))
     min_radius: float = field(metadata=bounds(0.0, 10.0))  # m
+    iterations: int = field(metadata=bounds(1, 50))  # Gauss-Newton steps per update; 1 = plain EKF
     width_model: WidthModel
 
     @property
@@ -322,32 +330,50 @@ class ObjectEKF:
         if reason is not None:
             return self._reject_invalid(reason, dof)
         cam = np.asarray(cam, dtype=float)
-        dx, dy = self.x[0] - cam[0], self.x[1] - cam[1]
-        if math.hypot(dx, dy) <= self.x[2]:
+        if not self._outside(self.x, cam):
             return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
-        model = self.params.width_model
-        predicted = measure(self.x, cam, model)
-        H = measurement_jacobian(self.x, cam, model)
-        nu = np.array([wrap_angle(phi - predicted[0]), 0.0 if delta is None else delta - predicted[1]])
-        R = self._R
-        if delta is None:
-            H, nu, R = H[:1], nu[:1], R[:1, :1]
-        PHt = self.P @ H.T
-        S = H @ PHt + R
-        S_inv = np.linalg.inv(S)
-        nis = float(nu @ S_inv @ nu)
+        z = np.array([phi, 0.0 if delta is None else delta])[:dof]
+        R = self._R[:dof, :dof]
+        nu = self._innovation(self.x, cam, z)
+        H = self._jacobian(self.x, cam, dof)
+        S = H @ self.P @ H.T + R
+        nis = float(nu @ np.linalg.solve(S, nu))
         if not math.isfinite(nis):
             return self._reject_invalid("innovation covariance is degenerate", dof)
         if nis > self._gate[dof]:
             self.stats.gated += 1
             return UpdateResult(False, nis, dof, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
-        gain = PHt @ S_inv
+        # Iterated EKF (Gauss-Newton on the MAP cost); one iteration is the plain EKF update.
+        x = self.x
+        for _ in range(self.params.iterations):
+            H = self._jacobian(x, cam, dof)
+            gain = self.P @ H.T @ np.linalg.inv(H @ self.P @ H.T + R)
+            x_next = self.x + gain @ (self._innovation(x, cam, z) - H @ (self.x - x))
+            if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
+                break
+            converged = np.max(np.abs(x_next - x)) < 1e-9
+            x = x_next
+            if converged:
+                break
+        if x is self.x:
+            return self._reject_invalid("update would put the camera inside the object", dof)
         A = np.eye(3) - gain @ H
-        x = self.x + gain @ nu
         P = A @ self.P @ A.T + gain @ R @ gain.T
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-            return self._reject_invalid("update produced a non-finite state", dof)
+        if not np.all(np.isfinite(P)):
+            return self._reject_invalid("update produced a non-finite covariance", dof)
+        x = x.copy()
         x[2] = max(x[2], self.params.min_radius)
         self.x, self.P = x, 0.5 * (P + P.T)
         self.stats.accepted += 1
         return UpdateResult(True, nis, dof, nu, "ok")
+
+    def _outside(self, x: np.ndarray, cam: np.ndarray) -> bool:
+        return math.hypot(x[0] - cam[0], x[1] - cam[1]) > x[2]
+
+    def _innovation(self, x: np.ndarray, cam: np.ndarray, z: np.ndarray) -> np.ndarray:
+        nu = z - measure(x, cam, self.params.width_model)[: z.size]
+        nu[0] = wrap_angle(nu[0])
+        return nu
+
+    def _jacobian(self, x: np.ndarray, cam: np.ndarray, dof: int) -> np.ndarray:
+        return measurement_jacobian(x, cam, self.params.width_model)[:dof]
