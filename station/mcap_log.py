@@ -1,0 +1,184 @@
+"""The run log: one MCAP file with JSON (jsonschema) and protobuf (Foxglove) channels.
+
+Writing: every channel is registered on first use with its schema; JSON payloads that arrived on
+the wire are logged as the received bytes, unchanged. The ``mcap`` writer keeps messages in
+memory until a chunk fills, so :meth:`McapLog.maybe_flush` closes the chunk in progress about once
+a second (``flush_interval``): a crash loses at most that much. The writer is shared by the
+control loop and the carving worker, hence the lock.
+
+Reading: :func:`read_log` yields messages in file order (the order they were written, which is
+the order the station processed them: replay depends on it). A file cut by a crash has no
+summary or footer; ``make_reader`` then fails, and the file is read linearly up to the last
+complete record, with a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, Optional, Tuple, Union
+
+from google.protobuf.message import Message as ProtoMessage
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import register_schema
+
+JsonPayload = Union[bytes, Dict[str, Any]]
+
+
+def to_ns(t: float) -> int:
+    return int(round(t * 1e9))
+
+
+class McapLog:
+    """Append-only run log. ``t`` arguments are station-clock seconds (``time.time()``)."""
+
+    def __init__(self, path: Union[str, Path], flush_interval: float = 1.0, clock: Callable[[], float] = time.time):
+        self.path = Path(path)
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="nao-active-recon station")
+        self._channels: Dict[str, int] = {}
+        self._schemas: Dict[Tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+        self._flush_interval = flush_interval
+        self._clock = clock
+        self._last_flush = clock()
+        self._closed = False
+
+    def json(self, topic: str, payload: JsonPayload, t: float, schema: Dict[str, Any]) -> None:
+        """Log a JSON message: ``bytes`` are logged as they are, a dict is serialized."""
+        data = payload if isinstance(payload, bytes) else json.dumps(payload, separators=(",", ":")).encode()
+        name = schema.get("title", topic)
+        with self._lock:
+            channel = self._channel(topic, "json", lambda: self._schema(name, "jsonschema", json.dumps(schema).encode()))
+            self._add(channel, data, t)
+
+    def proto(self, topic: str, message: ProtoMessage, t: float) -> None:
+        """Log a protobuf message (Foxglove schemas are named ``foxglove.<Name>``)."""
+        with self._lock:
+            channel = self._channel(topic, "protobuf", lambda: self._proto_schema(type(message)))
+            self._add(channel, message.SerializeToString(), t)
+
+    def maybe_flush(self) -> bool:
+        """Write the chunk in progress to disk when ``flush_interval`` has passed; True if flushed."""
+        with self._lock:
+            now = self._clock()
+            if self._closed or now - self._last_flush < self._flush_interval:
+                return False
+            self._writer.flush()
+            self._last_flush = now
+            return True
+
+    def close(self) -> None:
+        """Write the summary and the footer. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._writer.finish()
+            self._file.close()
+
+    def __enter__(self) -> "McapLog":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _channel(self, topic: str, encoding: str, schema_id: Callable[[], int]) -> int:
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(topic, encoding, schema_id())
+        return self._channels[topic]
+
+    def _schema(self, name: str, encoding: str, data: bytes) -> int:
+        key = (name, encoding)
+        if key not in self._schemas:
+            self._schemas[key] = self._writer.register_schema(name, encoding, data)
+        return self._schemas[key]
+
+    def _proto_schema(self, cls: type) -> int:
+        key = (cls.DESCRIPTOR.full_name, "protobuf")
+        if key not in self._schemas:
+            self._schemas[key] = register_schema(self._writer, cls)
+        return self._schemas[key]
+
+    def _add(self, channel: int, data: bytes, t: float) -> None:
+        if self._closed:
+            raise RuntimeError(f"{self.path}: log already closed")
+        stamp = to_ns(t)
+        self._writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp)
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    topic: str
+    t: float  # log time, s
+    data: bytes
+    encoding: str  # 'json' or 'protobuf'
+    schema: str  # schema name
+
+    def json(self) -> Any:
+        return json.loads(self.data)
+
+    def proto(self, cls: type) -> Any:
+        message = cls()
+        message.ParseFromString(self.data)
+        return message
+
+
+def read_log(path: Union[str, Path], topics: Optional[set] = None) -> Iterator[LogMessage]:
+    """Messages of the log in file order (all topics, or those in ``topics``).
+
+    A log without a valid summary (cut by a crash) is read linearly with a warning.
+    """
+    with open(path, "rb") as stream:
+        try:
+            reader = make_reader(stream)
+            summary = reader.get_summary()
+            if summary is None:
+                raise McapError("no summary")
+        except (McapError, ValueError, EOFError, AssertionError) as exc:
+            warnings.warn(f"{path}: incomplete MCAP ({exc}); reading it linearly up to the last complete record")
+            stream.seek(0)
+            yield from _linear(stream, topics)
+            return
+        for schema, channel, message in reader.iter_messages(topics=list(topics) if topics else None, log_time_order=False):
+            yield _message(schema, channel, message)
+
+
+def _linear(stream, topics: Optional[set]) -> Iterator[LogMessage]:
+    schemas: Dict[int, Schema] = {}
+    channels: Dict[int, Channel] = {}
+    records = StreamReader(stream, skip_magic=False).records
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception:  # noqa: BLE001 - the truncated tail may fail anywhere in the record parser
+            return
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Message):
+            channel = channels[record.channel_id]
+            if topics is None or channel.topic in topics:
+                yield _message(schemas.get(channel.schema_id), channel, record)
+
+
+def _message(schema: Optional[Schema], channel: Channel, message: Message) -> LogMessage:
+    return LogMessage(
+        topic=channel.topic,
+        t=message.log_time * 1e-9,
+        data=bytes(message.data),
+        encoding=channel.message_encoding,
+        schema=schema.name if schema else "",
+    )

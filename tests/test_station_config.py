@@ -1,0 +1,47 @@
+"""Station configuration: all sections composed from config/*.yaml, overrides checked strictly."""
+
+from __future__ import annotations
+
+import pytest
+
+from nao_bridge.config import ConfigError
+from station.config import SECTIONS, StationParams, load_station_config
+
+
+def test_defaults_compose_every_section():
+    config = load_station_config()
+    for name in SECTIONS:
+        assert getattr(config, name) is not None
+    assert config.station == StationParams()  # YAML defaults equal the dataclass defaults
+    assert config.station.control_period < 0.3  # walk commands must beat the bridge's deadman
+    assert len(config.landmarks.landmarks) == 12
+
+
+def test_override_merges_into_several_sections(tmp_path):
+    override = tmp_path / "o.yaml"
+    override.write_text("mission:\n  max_duration: 42\nstation:\n  port: 7500\n")
+    config = load_station_config([override])
+    assert config.mission.max_duration == 42.0 and config.station.port == 7500
+    assert config.mission.search_dwell == load_station_config().mission.search_dwell
+
+
+def test_robot_section_goes_to_started_bridges(tmp_path):
+    override = tmp_path / "cam.yaml"
+    override.write_text("robot:\n  neck_height: 0.44\n")
+    assert load_station_config([override]).robot_overrides == (override,)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("missoin:\n  max_duration: 3\n", r"o.yaml: missoin: unknown section"),
+        ("mission:\n  max_duration: -3\n", r"o.yaml: mission.max_duration: expected a number in \[1.0"),
+        ("station:\n  landmark_map: /nonexistent.yaml\n", r"/nonexistent.yaml: cannot read"),
+        ("[1, 2]\n", r"o.yaml: expected a mapping of sections"),
+    ],
+)
+def test_bad_override_is_named(tmp_path, text, match):
+    override = tmp_path / "o.yaml"
+    override.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        load_station_config([override])
