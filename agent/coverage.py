@@ -11,10 +11,13 @@ optical-axis heading psi and horizontal field of view hfov sees bin i when all t
 alpha_max <= pi/2, so a facing bin is never hidden by the (convex) cylinder itself. The coverage
 after a path is the union over its cameras, N_v = |U_t seen(c_t)|, re-evaluated against the
 current estimate (the bins move with it) from the executed camera poses, plus the predicted ones.
+Termination asks for coverage within alpha_max - margin, so that a bin seen right at the facing
+limit of the estimate is not missing for the true object.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import List, Tuple
@@ -81,10 +84,13 @@ class Coverage:
     def cameras(self) -> np.ndarray:
         return np.asarray(self._cams, dtype=float).reshape(-1, 3)
 
-    def seen(self, x: np.ndarray) -> np.ndarray:
-        """Bins (N0,) seen from the executed path, for the object estimate x."""
-        return bins_seen(np.asarray(x, dtype=float), self.cameras, self.params, self.hfov).any(axis=0)
+    def seen(self, x: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Bins (N0,) seen from the executed path for the estimate x, within facing_angle - margin."""
+        params = self.params
+        if margin:
+            params = dataclasses.replace(params, facing_angle=max(params.facing_angle - margin, 0.0))
+        return bins_seen(np.asarray(x, dtype=float), self.cameras, params, self.hfov).any(axis=0)
 
-    def fraction(self, x: np.ndarray) -> float:
-        """N_v / N_0 of the executed path."""
-        return float(self.seen(x).mean())
+    def fraction(self, x: np.ndarray, margin: float = 0.0) -> float:
+        """N_v / N_0 of the executed path (``margin``: see :meth:`seen`)."""
+        return float(self.seen(x, margin).mean())

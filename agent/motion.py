@@ -18,6 +18,11 @@ optical axis (NAO's CameraTop offset), so its planar pose is::
     c = p + b [cos psi, sin psi],   camera pose = (c_x, c_y, psi)
 
 and whenever the yaw is not clipped the optical axis passes exactly through o (bearing phi = 0).
+
+Visibility. A camera sees the whole object (and so measures both phi and delta) when its
+silhouette is inside the horizontal field of view and the centre is within the usable range::
+
+    |phi| + delta / 2 <= hfov / 2,   r < d <= d_max
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from typing import Tuple
 import numpy as np
 
 from agent.camera import wrap_angle
+from agent.ekf import measure
 
 
 def rollout_poses(
@@ -61,3 +67,11 @@ def camera_poses(
     cx = poses[..., 0] + camera_offset * np.cos(psi)
     cy = poses[..., 1] + camera_offset * np.sin(psi)
     return np.stack([cx, cy, psi], axis=-1)
+
+
+def object_in_view(x: np.ndarray, cams: np.ndarray, hfov: float, max_range: float) -> np.ndarray:
+    """Whether cameras (..., 3) see the whole cylinder x = (xo, yo, r) within ``max_range``: (...,) bool."""
+    cams = np.asarray(cams, dtype=float)
+    phi, delta = np.moveaxis(measure(x, cams), -1, 0)
+    d = np.hypot(x[0] - cams[..., 0], x[1] - cams[..., 1])
+    return (np.abs(phi) + 0.5 * delta <= 0.5 * hfov) & (d > x[2]) & (d <= max_range)

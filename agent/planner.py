@@ -1,0 +1,333 @@
+"""Reconstruction-oriented receding-horizon planner (the paper's Sec. III-B, corrected, and fast).
+
+Decision: the angular velocities w = (omega_{t+1}, ..., omega_{t+D}), |omega_k| <= omega_max, walked
+at constant speed v for one period tau each (:mod:`agent.motion`). Expected cost (DESIGN.md item 7:
+the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
+the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
+
+    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + mu |w|^2 + c_clear
+
+evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{t+D}):
+
+    c_l  uncertainty   "relative": det(P_{t+D})^(1/3) / r^2   (geometric-mean variance over r^2:
+                       dimensionless, so one weight serves a 5 cm can and a 50 cm box)
+                       "paper":    det(P_{t+D})
+    c_v  view          "reachable": e^2, e = excess of the bearing b = wrap(atan2(o - p) - theta) beyond
+                       the reachable field of view [yaw_min - hfov/2, yaw_max + hfov/2] (0 inside)
+                       "paper":    b^2 (the paper's theta_o read as the robot heading)
+    c_r  coverage      "corrected": 1 - N_v / N_0;   "paper": N_v / N_0 (minimizing it avoids coverage)
+                       N_v: bins seen over the executed path and the horizon (:mod:`agent.coverage`)
+    c_d  distance      "standoff": ((d - d_min) / d_min)^2;   "paper": d_min / d,   d = |o - p_{t+D}|
+    c_clear            hard clearance: W_clear sum_k max(0, r + clearance - |o - p_k|)^2 over the
+                       horizon, W_clear = 1e6, so any sequence keeping the clearance beats any that
+                       breaks it, and when none can, the least violating one wins.
+
+Optimizers (same cost, warm-started with the previous solution shifted by one step):
+
+* ``nelder_mead``: scipy.optimize.minimize(method="Nelder-Mead"), one candidate per call, as the paper.
+* ``cem``: the cross-entropy method vectorized over K candidate sequences per iteration (one batched
+  rollout each): sample w ~ N(m, diag(s^2)) clipped to the limits, keep the E best, refit m, s.
+  The first batch also holds the warm start and the constant-turn sequences, so circling in either
+  direction is always considered.
+
+Termination: coverage N_v/N_0 >= target and position and radius standard deviations below their
+thresholds ("complete"), or the elapsed time beyond the limit ("time_limit").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Literal, Optional, Tuple
+
+import numpy as np
+from scipy.optimize import minimize
+
+from agent.camera import wrap_angle
+from agent.coverage import Coverage, CoverageParams, seen_count
+from agent.ekf import EKFParams, rollout_covariance
+from agent.motion import camera_poses, object_in_view, rollout_poses
+from nao_bridge.config import CONFIG_DIR, bounds, load
+from nao_bridge.robot_model import RobotModel, WalkLimits
+
+CLEARANCE_WEIGHT = 1e6
+
+
+@dataclass(frozen=True)
+class Weights:
+    """lambda_l, lambda_v, lambda_r, lambda_d and mu of the cost."""
+
+    uncertainty: float = field(metadata=bounds(0.0, 1e9))
+    view: float = field(metadata=bounds(0.0, 1e9))
+    coverage: float = field(metadata=bounds(0.0, 1e9))
+    distance: float = field(metadata=bounds(0.0, 1e9))
+    effort: float = field(metadata=bounds(0.0, 1e9))
+
+
+@dataclass(frozen=True)
+class CEMParams:
+    """Cross-entropy method: candidates per iteration, elites kept, iterations, initial and floor std (rad/s)."""
+
+    samples: int = field(metadata=bounds(4, 100000))
+    elites: int = field(metadata=bounds(1, 100000))
+    iterations: int = field(metadata=bounds(1, 1000))
+    initial_std: float = field(metadata=bounds(1e-4, 10.0))
+    min_std: float = field(metadata=bounds(0.0, 10.0))
+
+    def __post_init__(self) -> None:
+        if self.elites >= self.samples:
+            raise ValueError(f"cem.elites ({self.elites}) must be fewer than cem.samples ({self.samples})")
+
+
+@dataclass(frozen=True)
+class TerminationParams:
+    """Stop when coverage >= coverage and the position/radius std are below the thresholds, or after time_limit s.
+
+    The coverage for termination counts bins within the facing angle minus ``facing_margin`` (rad).
+    """
+
+    coverage: float = field(metadata=bounds(0.0, 1.0))
+    facing_margin: float = field(metadata=bounds(0.0, 1.0))
+    position_std: float = field(metadata=bounds(0.0, 10.0))
+    radius_std: float = field(metadata=bounds(0.0, 10.0))
+    time_limit: float = field(metadata=bounds(0.0, 1e6))
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    """config/planner.yaml, section ``planner`` (SI units)."""
+
+    speed: float = field(metadata=bounds(0.0, 1.0))  # v, m/s
+    period: float = field(metadata=bounds(0.01, 10.0))  # tau, s
+    horizon: int = field(metadata=bounds(1, 200))  # D steps
+    d_min: float = field(metadata=bounds(0.05, 20.0))  # comfortable distance to the centre, m
+    clearance: float = field(metadata=bounds(0.0, 10.0))  # never closer to the estimated surface, m
+    max_range: float = field(metadata=bounds(0.1, 100.0))  # the object is measurable up to this distance, m
+    uncertainty_form: Literal["relative", "paper"]
+    view_form: Literal["reachable", "paper"]
+    coverage_form: Literal["corrected", "paper"]
+    distance_form: Literal["standoff", "paper"]
+    weights: Weights
+    coverage: CoverageParams
+    optimizer: Literal["cem", "nelder_mead"]
+    cem: CEMParams
+    termination: TerminationParams
+
+
+def load_planner_params(files=()) -> PlannerParams:
+    """The ``planner`` section of config/planner.yaml merged with override ``files``."""
+    return load(PlannerParams, [CONFIG_DIR / "planner.yaml", *files], section="planner")
+
+
+# --- cost terms --------------------------------------------------------------------------------
+
+
+def uncertainty_cost(P: np.ndarray, radius: float, form: str = "relative") -> np.ndarray:
+    """c_l of covariances (..., 3, 3): det(P)^(1/3) / r^2 ("relative") or det(P) ("paper")."""
+    det = np.linalg.det(P)
+    if form == "paper":
+        return det
+    return np.cbrt(np.maximum(det, 0.0)) / radius**2
+
+
+def view_cost(bearing: np.ndarray, reach: Tuple[float, float], form: str = "reachable") -> np.ndarray:
+    """c_v of the object's bearing from the robot heading: b^2 ("paper") or the squared excess beyond reach."""
+    if form == "paper":
+        return np.square(bearing)
+    excess = np.maximum(bearing - reach[1], 0.0) + np.maximum(reach[0] - bearing, 0.0)
+    return np.square(excess)
+
+
+def coverage_cost(n_seen: np.ndarray, n_bins: int, form: str = "corrected") -> np.ndarray:
+    """c_r: 1 - N_v / N_0 ("corrected") or N_v / N_0 ("paper")."""
+    fraction = np.asarray(n_seen, dtype=float) / n_bins
+    return fraction if form == "paper" else 1.0 - fraction
+
+
+def distance_cost(d: np.ndarray, d_min: float, form: str = "standoff") -> np.ndarray:
+    """c_d: ((d - d_min) / d_min)^2 ("standoff") or d_min / d ("paper")."""
+    d = np.asarray(d, dtype=float)
+    return d_min / d if form == "paper" else np.square((d - d_min) / d_min)
+
+
+def effort_cost(omegas: np.ndarray) -> np.ndarray:
+    """|w|^2 = sum_k omega_k^2 over the horizon (last axis)."""
+    return np.sum(np.square(omegas), axis=-1)
+
+
+def clearance_cost(distances: np.ndarray, radius: float, clearance: float) -> np.ndarray:
+    """W_clear sum_k max(0, r + clearance - d_k)^2 over the horizon (last axis)."""
+    return CLEARANCE_WEIGHT * np.sum(np.square(np.maximum(radius + clearance - distances, 0.0)), axis=-1)
+
+
+# --- planner ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One replan: the chosen sequence, the command to send now, the cost and its weighted terms."""
+
+    omegas: np.ndarray  # (D,) rad/s
+    command: Tuple[float, float, float]  # (v, vy, omega) within the walk limits
+    cost: float
+    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, clearance
+    evaluations: int  # candidate sequences whose cost was computed
+
+
+def termination_reason(
+    coverage_fraction: float, P: np.ndarray, elapsed: float, params: TerminationParams
+) -> Optional[str]:
+    """Why the mission is over ("complete: ...", "time_limit: ..."), or None to go on."""
+    position_std = math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0))
+    radius_std = math.sqrt(max(P[2, 2], 0.0))
+    if coverage_fraction >= params.coverage and position_std <= params.position_std and radius_std <= params.radius_std:
+        return (
+            f"complete: coverage {coverage_fraction:.2f}, position std {1000 * position_std:.1f} mm, "
+            f"radius std {1000 * radius_std:.1f} mm"
+        )
+    if elapsed >= params.time_limit:
+        return f"time_limit: {elapsed:.0f} s elapsed (limit {params.time_limit:.0f} s)"
+    return None
+
+
+class Planner:
+    """Receding-horizon controller: call :meth:`plan` once per control period."""
+
+    def __init__(
+        self,
+        params: PlannerParams,
+        walk_limits: WalkLimits,
+        camera_hfov: float,
+        head_yaw_limits: Tuple[float, float],
+        camera_offset: float = 0.0,
+        ekf: Optional[EKFParams] = None,
+        seed: int = 0,
+    ):
+        if params.speed > walk_limits.v_max:
+            raise ValueError(f"planner.speed {params.speed} m/s exceeds the robot's v_max {walk_limits.v_max} m/s")
+        if not 0.0 < camera_hfov < math.pi:
+            raise ValueError(f"camera_hfov must be in (0, pi) rad, got {camera_hfov}")
+        self.params = params
+        self.walk_limits = walk_limits
+        self.hfov = camera_hfov
+        self.head_yaw_limits = (float(head_yaw_limits[0]), float(head_yaw_limits[1]))
+        self.camera_offset = camera_offset
+        self.reach = (self.head_yaw_limits[0] - 0.5 * camera_hfov, self.head_yaw_limits[1] + 0.5 * camera_hfov)
+        self._R = None if ekf is None else ekf.R
+        self._Q_step = None if ekf is None else ekf.Q(params.period)
+        self._rng = np.random.default_rng(seed)
+        self._previous: Optional[np.ndarray] = None
+
+    @classmethod
+    def for_robot(
+        cls, params: PlannerParams, robot: RobotModel, resolution: str, ekf: Optional[EKFParams] = None, seed: int = 0
+    ) -> "Planner":
+        """A planner with the walk limits, field of view, head yaw limits and camera offset of ``robot``."""
+        intr = robot.camera.intrinsics(resolution)
+        hfov = 2.0 * math.atan(0.5 * intr.width / intr.fx)
+        return cls(params, robot.walk, hfov, robot.head.yaw, robot.camera.offset[0], ekf, seed)
+
+    @property
+    def omega_max(self) -> float:
+        return self.walk_limits.omega_max
+
+    def reset(self) -> None:
+        """Forget the warm start (a new mission)."""
+        self._previous = None
+
+    def cost_function(
+        self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray
+    ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
+        """The batched cost w (K, D) -> (total (K,), weighted terms) for this replan's belief."""
+        p, w = self.params, self.params.weights
+        target = x[:2]
+
+        def evaluate(omegas: np.ndarray) -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
+            poses = rollout_poses(robot_pose, omegas, p.speed, p.period)  # (K, D, 3)
+            cams = camera_poses(poses, target, self.head_yaw_limits, self.camera_offset)
+            visible = object_in_view(x, cams, self.hfov, p.max_range)
+            P_end = rollout_covariance(x, P, cams, visible, self._Q_step, R=self._R)
+            dist = np.hypot(target[0] - poses[..., 0], target[1] - poses[..., 1])  # (K, D)
+            bearing = wrap_angle(np.arctan2(target[1] - poses[:, -1, 1], target[0] - poses[:, -1, 0]) - poses[:, -1, 2])
+            n_seen = seen_count(x, cams, seen, p.coverage, self.hfov)
+            terms = {
+                "uncertainty": w.uncertainty * uncertainty_cost(P_end, x[2], p.uncertainty_form),
+                "view": w.view * view_cost(bearing, self.reach, p.view_form),
+                "coverage": w.coverage * coverage_cost(n_seen, p.coverage.bins, p.coverage_form),
+                "distance": w.distance * distance_cost(dist[:, -1], p.d_min, p.distance_form),
+                "effort": w.effort * effort_cost(omegas),
+                "clearance": clearance_cost(dist, x[2], p.clearance),
+            }
+            return sum(terms.values()), terms
+
+        return evaluate
+
+    def plan(self, robot_pose, x, P, coverage: Coverage) -> Plan:
+        """Choose the next D angular velocities for the robot at ``robot_pose`` and the belief (x, P)."""
+        robot_pose = _checked("robot_pose", robot_pose, (3,))
+        x = _checked("x", x, (3,))
+        P = _checked("P", P, (3, 3))
+        if x[2] <= 0.0:
+            raise ValueError(f"x: object radius must be positive, got {x[2]}")
+        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x))
+        optimize = self._cem if self.params.optimizer == "cem" else self._nelder_mead
+        best, evaluations = optimize(evaluate, self._warm_start())
+        total, terms = evaluate(best[None])
+        self._previous = best
+        v, vy, omega = self.walk_limits.clamp(self.params.speed, 0.0, float(best[0]))
+        return Plan(
+            omegas=best,
+            command=(v, vy, omega),
+            cost=float(total[0]),
+            terms={k: float(t[0]) for k, t in terms.items()},
+            evaluations=evaluations,
+        )
+
+    def _warm_start(self) -> np.ndarray:
+        D = self.params.horizon
+        if self._previous is None or self._previous.shape != (D,):
+            return np.zeros(D)
+        return np.append(self._previous[1:], self._previous[-1])
+
+    def _cem(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
+        c, D, limit = self.params.cem, self.params.horizon, self.omega_max
+        turns = np.linspace(-limit, limit, 5)[:, None] * np.ones(D)
+        mean, std = warm.copy(), np.full(D, c.initial_std)
+        best, best_cost, evaluations = warm, math.inf, 0
+        for iteration in range(c.iterations):
+            samples = np.clip(mean + std * self._rng.standard_normal((c.samples, D)), -limit, limit)
+            if iteration == 0:
+                samples[: 1 + len(turns)] = np.vstack([warm, turns])
+            else:
+                samples[0] = best
+            costs, _ = evaluate(samples)
+            evaluations += len(samples)
+            order = np.argsort(costs)
+            if costs[order[0]] < best_cost:
+                best, best_cost = samples[order[0]].copy(), costs[order[0]]
+            elites = samples[order[: c.elites]]
+            mean, std = elites.mean(axis=0), np.maximum(elites.std(axis=0), c.min_std)
+        return best, evaluations
+
+    def _nelder_mead(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
+        D, limit = self.params.horizon, self.omega_max
+        step = 0.25 * limit * np.where(warm > 0.0, -1.0, 1.0)  # initial simplex edges pointing inward
+        simplex = np.vstack([warm, warm + np.diag(step)])
+        result = minimize(
+            lambda w: float(evaluate(np.asarray(w)[None])[0][0]),
+            warm,
+            method="Nelder-Mead",
+            bounds=[(-limit, limit)] * D,
+            options={"initial_simplex": simplex},
+        )
+        return np.clip(result.x, -limit, limit), int(result.nfev)
+
+
+def _checked(name: str, value, shape: Tuple[int, ...]) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        array = np.full(1, np.nan)
+    if array.shape != shape or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: expected finite numbers of shape {shape}, got {np.asarray(value).tolist()!r}")
+    return array

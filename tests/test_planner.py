@@ -1,0 +1,226 @@
+"""Motion model, cost terms against hand-computed values, the planner, and the closed loop in 2-D simulation."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from agent.coverage import Coverage
+from agent.ekf import load_ekf_params, measure
+from agent.motion import camera_poses, head_yaw_toward, object_in_view, rollout_poses
+from agent.planner import (
+    CLEARANCE_WEIGHT,
+    Planner,
+    clearance_cost,
+    coverage_cost,
+    distance_cost,
+    effort_cost,
+    load_planner_params,
+    termination_reason,
+    uncertainty_cost,
+    view_cost,
+)
+from agent.sim2d import SimRobot, circle_omega, simulate
+from nao_bridge.robot_model import load_robot_model
+
+ROBOT_MODEL = load_robot_model()
+PARAMS = load_planner_params()
+EKF = load_ekf_params()
+HFOV = 2.0 * math.atan(0.5 * 640 / ROBOT_MODEL.camera.intrinsics("vga").fx)
+ROBOT = SimRobot(ROBOT_MODEL.walk, HFOV, ROBOT_MODEL.head.yaw, ROBOT_MODEL.camera.offset[0])
+
+
+# --- motion ---------------------------------------------------------------------------------------
+
+
+def test_straight_walk_advances_v_tau_per_step():
+    poses = rollout_poses(np.array([1.0, 2.0, math.pi / 2]), np.zeros(3), speed=0.1, period=2.0)
+    np.testing.assert_allclose(poses, [[1.0, 2.2, math.pi / 2], [1.0, 2.4, math.pi / 2], [1.0, 2.6, math.pi / 2]], atol=1e-12)
+
+
+def test_constant_turn_walks_the_exact_circle_of_radius_v_over_omega():
+    v, omega, tau = 0.08, 0.2, 1.0
+    n = 70  # more than two full turns
+    poses = rollout_poses(np.zeros(3), np.full(n, omega), v, tau)
+    centre = np.array([0.0, v / omega])  # turning left from the origin heading +x
+    np.testing.assert_allclose(np.hypot(*(poses[:, :2] - centre).T), v / omega, atol=1e-12)
+    np.testing.assert_allclose(poses[:, 2], np.angle(np.exp(1j * omega * tau * np.arange(1, n + 1))), atol=1e-9)
+
+
+def test_lateral_walk_moves_left_of_the_heading():
+    pose = rollout_poses(np.zeros(3), np.zeros(1), speed=0.0, period=1.0, lateral_speed=0.05)[0]
+    np.testing.assert_allclose(pose, [0.0, 0.05, 0.0], atol=1e-12)
+
+
+def test_head_yaw_points_the_camera_at_the_target_within_limits():
+    target = np.array([1.0, 1.0, 0.1])
+    robot = np.array([0.0, 0.0, 0.0])
+    assert head_yaw_toward(robot, target, (-2.0, 2.0)) == pytest.approx(math.pi / 4)
+    cam = camera_poses(robot, target, (-2.0, 2.0), camera_offset=0.06)
+    np.testing.assert_allclose(cam, [0.06 * math.cos(math.pi / 4), 0.06 * math.sin(math.pi / 4), math.pi / 4])
+    assert measure(target, cam)[0] == pytest.approx(0.0, abs=1e-12)  # the offset lies on the optical axis
+    behind = np.array([-1.0, -0.01, 0.1])
+    assert head_yaw_toward(robot, behind, (-2.0, 2.0)) == pytest.approx(-2.0)  # clipped at the limit
+    assert not object_in_view(behind, camera_poses(robot, behind, (-2.0, 2.0), 0.06), hfov=1.0, max_range=5.0)
+    assert object_in_view(target, cam, hfov=1.0, max_range=5.0)
+    assert not object_in_view(target, cam, hfov=1.0, max_range=1.0)  # beyond range
+
+
+# --- cost terms -----------------------------------------------------------------------------------
+
+
+def test_uncertainty_cost_relative_and_paper():
+    P = np.diag([0.01, 0.02, 0.04]) ** 2  # det = 6.4e-11, cbrt = 4e-4
+    assert uncertainty_cost(P, 0.1, "paper") == pytest.approx(6.4e-11)
+    assert uncertainty_cost(P, 0.1, "relative") == pytest.approx(4e-4 / 0.01)
+    # Scaling the world by s leaves the relative form unchanged: comparable across object sizes.
+    assert uncertainty_cost(P * 25.0, 0.5, "relative") == pytest.approx(0.04)
+
+
+def test_view_cost_paper_and_reachable():
+    reach = (-2.58, 2.58)
+    assert view_cost(np.array(0.5), reach, "paper") == pytest.approx(0.25)
+    np.testing.assert_allclose(view_cost(np.array([2.5, -2.5, 3.0, -3.1]), reach, "reachable"), [0, 0, 0.42**2, 0.52**2])
+
+
+def test_coverage_cost_corrected_and_paper():
+    assert coverage_cost(9, 36, "corrected") == pytest.approx(0.75)
+    assert coverage_cost(9, 36, "paper") == pytest.approx(0.25)
+
+
+def test_distance_cost_standoff_and_paper():
+    assert distance_cost(1.2, 0.8, "standoff") == pytest.approx(0.25)
+    assert distance_cost(0.8, 0.8, "standoff") == 0.0
+    assert distance_cost(1.2, 0.8, "paper") == pytest.approx(2 / 3)
+
+
+def test_effort_and_clearance_costs():
+    assert effort_cost(np.array([0.1, -0.2])) == pytest.approx(0.05)
+    # r + clearance = 0.35: only the 0.30 m step violates, by 0.05 m.
+    assert clearance_cost(np.array([1.0, 0.30]), 0.1, 0.25) == pytest.approx(CLEARANCE_WEIGHT * 0.05**2)
+    assert clearance_cost(np.array([1.0, 0.36]), 0.1, 0.25) == 0.0
+
+
+def test_termination_reasons():
+    small = np.diag([0.001, 0.001, 0.001]) ** 2
+    params = PARAMS.termination
+    assert termination_reason(1.0, small, 10.0, params).startswith("complete")
+    assert termination_reason(0.9, small, 10.0, params) is None
+    assert termination_reason(1.0, small * 100, 10.0, params) is None  # 1 cm std is not precise enough
+    assert termination_reason(0.5, small, params.time_limit, params).startswith("time_limit")
+
+
+# --- planner --------------------------------------------------------------------------------------
+
+
+def make_planner(**changes) -> Planner:
+    return Planner(dataclasses.replace(PARAMS, **changes), ROBOT.walk, HFOV, ROBOT.head_yaw_limits, ROBOT.camera_offset, EKF)
+
+
+def test_plan_terms_add_up_and_the_command_is_within_limits():
+    planner = make_planner()
+    x, P = np.array([2.0, 0.0, 0.1]), np.diag([0.02, 0.5, 0.05]) ** 2
+    plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
+    assert plan.cost == pytest.approx(sum(plan.terms.values()))
+    assert set(plan.terms) == {"uncertainty", "view", "coverage", "distance", "effort", "clearance"}
+    assert plan.omegas.shape == (PARAMS.horizon,) and np.all(np.abs(plan.omegas) <= ROBOT.walk.omega_max)
+    v, vy, omega = plan.command
+    assert (v, vy) == (PARAMS.speed, 0.0) and omega == plan.omegas[0]
+    # From 2 m with d_min 0.8 m the plan approaches the object.
+    end = rollout_poses(np.zeros(3), plan.omegas, PARAMS.speed, PARAMS.period)[-1]
+    assert math.hypot(*(x[:2] - end[:2])) < 2.0 - 0.5 * PARAMS.horizon * PARAMS.speed
+
+
+def test_plan_turns_away_rather_than_break_the_clearance():
+    planner = make_planner()
+    x, P = np.array([0.6, 0.0, 0.1]), np.diag([0.005, 0.005, 0.005]) ** 2  # clearance boundary 0.25 m ahead
+    plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
+    path = rollout_poses(np.zeros(3), plan.omegas, PARAMS.speed, PARAMS.period)
+    assert np.min(np.hypot(*(x[:2] - path[:, :2]).T)) >= x[2] + PARAMS.clearance
+    assert plan.terms["clearance"] == 0.0
+
+
+def test_nelder_mead_and_cem_optimize_the_same_cost():
+    x, P = np.array([1.5, 0.3, 0.1]), np.diag([0.02, 0.3, 0.05]) ** 2
+    coverage = Coverage(PARAMS.coverage, HFOV)
+    cem = make_planner(horizon=5).plan(np.zeros(3), x, P, coverage)
+    nm = make_planner(horizon=5, optimizer="nelder_mead").plan(np.zeros(3), x, P, coverage)
+    zero = make_planner(horizon=5).cost_function(np.zeros(3), x, P, coverage.seen(x))(np.zeros((1, 5)))[0][0]
+    assert nm.cost < zero and cem.cost < zero  # both improve on walking straight
+    assert cem.cost <= nm.cost * 1.02
+
+
+def test_warm_start_is_the_previous_solution_shifted():
+    planner = make_planner(horizon=4, cem=dataclasses.replace(PARAMS.cem, iterations=1))
+    x, P = np.array([1.5, 0.3, 0.1]), np.diag([0.02, 0.3, 0.05]) ** 2
+    first = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
+    np.testing.assert_array_equal(planner._warm_start(), np.append(first.omegas[1:], first.omegas[-1]))
+    planner.reset()
+    np.testing.assert_array_equal(planner._warm_start(), np.zeros(4))
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ((np.zeros(2), np.array([1.0, 0.0, 0.1]), np.eye(3)), "robot_pose"),
+        ((np.zeros(3), np.array([1.0, np.nan, 0.1]), np.eye(3)), "x: expected finite"),
+        ((np.zeros(3), np.array([1.0, 0.0, -0.1]), np.eye(3)), "radius must be positive"),
+        ((np.zeros(3), np.array([1.0, 0.0, 0.1]), "eye"), "P: expected finite"),
+    ],
+)
+def test_bad_input_is_named(args, message):
+    with pytest.raises(ValueError, match=message):
+        make_planner().plan(*args, Coverage(PARAMS.coverage, HFOV))
+
+
+def test_speed_beyond_the_walk_limit_is_refused():
+    with pytest.raises(ValueError, match="v_max"):
+        make_planner(speed=0.5)
+
+
+# --- closed loop in simulation ----------------------------------------------------------------------
+
+
+def random_start(seed: int):
+    rng = np.random.default_rng(1000 + seed)
+    azimuth, distance = rng.uniform(-math.pi, math.pi), rng.uniform(1.5, 2.5)
+    start = np.array([distance * math.cos(azimuth), distance * math.sin(azimuth), azimuth + math.pi + rng.uniform(-0.3, 0.3)])
+    truth = np.array([*rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.2)])
+    return truth, start
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_active_loop_localizes_and_covers_within_limits(seed):
+    truth, start = random_start(seed)
+    result = simulate(truth, start, PARAMS, EKF, ROBOT, seed)
+    assert result.reason.startswith("complete")
+    centre_error, radius_error = result.final_errors()
+    assert centre_error < 0.01 and radius_error < 0.005
+    distance = np.hypot(*(result.poses[:, :2] - truth[:2]).T)
+    assert np.min(distance - truth[2]) >= PARAMS.clearance - 0.02  # never inside the clearance (2 cm estimate slack)
+    settled = np.median(distance[len(distance) // 2 :])
+    full = result.steps_to_full_coverage()
+    assert full is not None and result.path_length[full] <= 1.3 * 2 * math.pi * settled
+    v, vy, omega = result.commands.T
+    assert np.all(v <= ROBOT.walk.v_max) and np.all(np.abs(vy) <= ROBOT.walk.vy_max)
+    assert np.all(np.abs(omega) <= ROBOT.walk.omega_max)
+
+
+def test_simulation_is_deterministic_for_a_seed():
+    truth, start = random_start(3)
+    a, b = (simulate(truth, start, PARAMS, EKF, ROBOT, seed=7, max_steps=15) for _ in range(2))
+    np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.estimates, b.estimates)
+    c = simulate(truth, start, PARAMS, EKF, ROBOT, seed=8, max_steps=15)
+    assert not np.array_equal(a.estimates, c.estimates)
+
+
+def test_passive_circle_law_converges_to_the_circle():
+    pose = np.array([2.0, 0.0, math.pi])
+    for _ in range(150):
+        omega = circle_omega(pose, np.zeros(2), 0.8, 0.08, 1.0, ROBOT.walk.omega_max)
+        pose = rollout_poses(pose, np.array([omega]), 0.08, 1.0)[0]
+    assert math.hypot(pose[0], pose[1]) == pytest.approx(0.8, abs=0.03)
