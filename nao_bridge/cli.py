@@ -1,14 +1,103 @@
-"""`nao-bridge` command line (wired by the bridge issue)."""
+"""`nao-bridge`: run the bridge on a real NAO (NAOqi) or on the simulated one.
+
+    nao-bridge --naoqi tcp://HOST:9559 [--listen tcp/[::]:7447] [--name nao] [--config FILE ...]
+    nao-bridge --sim [--scenario can] [--seed 0] [--listen ...] [--name nao] [--config FILE ...]
+
+Exit codes: 0 after a clean stop (SIGINT, SIGTERM), 1 when the robot or the network cannot be
+reached, 2 on a configuration or usage error (one line, never a traceback).
+"""
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import logging
+import signal
 import sys
+import threading
 from typing import List, Optional
+
+from .backend import RobotBackend
+from .bridge import Bridge, BridgeParams
+from .config import CONFIG_DIR, ConfigError, load, main_error
+from .robot_model import RobotModel, load_robot_model
+
+log = logging.getLogger("nao_bridge")
+
+
+def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="nao-bridge", description=__doc__.splitlines()[0])
+    target = parser.add_mutually_exclusive_group(required=True)
+    target.add_argument("--naoqi", metavar="URL", help="NAOqi endpoint of the robot, e.g. tcp://nao.local:9559")
+    target.add_argument("--sim", action="store_true", help="drive the simulated NAO")
+    parser.add_argument("--scenario", default="can", help="simulator scenario (with --sim): can, remote, figure")
+    parser.add_argument("--seed", type=int, default=0, help="simulator seed (with --sim)")
+    parser.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint(s), e.g. tcp/[::]:7447")
+    parser.add_argument("--name", help="robot name: keys live under nao/<name>/")
+    parser.add_argument("--config", action="append", default=[], metavar="FILE", help="bridge config override(s) (top-level key bridge), merged in order")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    return parser.parse_args(argv)
+
+
+def load_params(args: argparse.Namespace) -> BridgeParams:
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml", *args.config], section="bridge")
+    if args.listen:
+        params = dataclasses.replace(params, transport=dataclasses.replace(params.transport, listen=tuple(args.listen)))
+    if args.name:
+        params = dataclasses.replace(params, name=args.name)
+    return params
+
+
+def load_model(params: BridgeParams) -> RobotModel:
+    """NAO V6 merged with ``bridge.robot`` (a robot model file, relative to config/ or absolute)."""
+    model = load_robot_model([CONFIG_DIR / params.robot] if params.robot else [])
+    try:
+        model.camera.intrinsics(params.resolution)
+    except KeyError as exc:
+        raise ConfigError(f"bridge.resolution: {exc.args[0]}") from None
+    return model
+
+
+def make_backend(args: argparse.Namespace, params: BridgeParams, model: RobotModel) -> RobotBackend:
+    if args.sim:
+        from .sim import SimBackend, SimWorld
+
+        try:
+            world = SimWorld(args.scenario, model, resolution=params.resolution, seed=args.seed)
+        except KeyError as exc:
+            raise ConfigError(f"--scenario: {exc.args[0]}") from None
+        return SimBackend(world, fps=params.fps)
+    from .naoqi_backend import NaoqiBackend
+
+    return NaoqiBackend(args.naoqi, model, params.naoqi, params.resolution, params.fps)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    print("nao-bridge: not yet implemented (see the bridge issue)", file=sys.stderr)
-    return 2
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        params = load_params(args)
+        model = load_model(params)
+        backend = make_backend(args, params, model)
+    except ConfigError as exc:
+        return main_error(exc)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda num, _frame: stop.set())
+    bridge = Bridge(backend, model, params, "sim" if args.sim else "naoqi")
+    try:
+        bridge.start()
+    except Exception as exc:  # noqa: BLE001 - unreachable robot, busy port: one line, exit 1
+        log.error("cannot start: %s", str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+        bridge.close()
+        return 1
+    try:
+        while not stop.wait(0.5):
+            pass
+    finally:
+        log.info("stopping")
+        bridge.close()
+    return 0
 
 
 if __name__ == "__main__":

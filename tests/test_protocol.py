@@ -20,7 +20,6 @@ from nao_bridge.protocol import (
     Info,
     ProtocolError,
     RobotKeys,
-    SimObject,
     State,
     Truth,
     WalkCommand,
@@ -32,10 +31,15 @@ from nao_bridge.protocol import (
     json_schema,
     to_dict,
 )
+from nao_bridge.config import from_mapping
 from nao_bridge.robot_model import load_robot_model
+from nao_bridge.sim import SimWorld
 
 MODEL = load_robot_model()
 EYE = tuple(float(x) for x in np.eye(4).ravel())
+WORLD = SimWorld("figure", MODEL, resolution="qvga", seed=3)
+WORLD.render()
+TRUTH = from_mapping(Truth, WORLD.truth())  # what the bridge publishes for the simulator
 
 
 def samples():
@@ -54,10 +58,7 @@ def samples():
             bridge_version="0.1.0", backend="sim", robot=MODEL, resolution="vga",
             intrinsics=MODEL.camera.intrinsics("vga"), fps=15.0, state_rate_hz=20.0, deadman_s=0.3,
         ),
-        Truth(
-            stamp=1.7e9, robot=(1.0, 2.0, 0.5), odom=(1.01, 2.0, 0.49), T_WC=EYE,
-            object=SimObject(kind="can", x=0.0, y=0.0, radius=0.033, height=0.12),
-        ),
+        TRUTH,
     ]
 
 
@@ -202,6 +203,14 @@ def test_frame_meta_needs_sixteen_matrix_entries():
     data["T_BC"] = data["T_BC"][:15]
     with pytest.raises(ProtocolError, match="T_BC"):
         decode_frame(frame_with(meta=json.dumps(data).encode()))
+
+
+def test_sim_truth_keeps_the_world_ground_truth():
+    truth = decode(encode(TRUTH), Truth)
+    raw = WORLD.truth()
+    assert truth.robot_pose == pytest.approx(raw["robot_pose"])
+    assert np.allclose(truth.camera.T_WC, raw["camera"]["T_WC"])
+    assert len(truth.object.parts) == 6 and truth.object.kind == "composite"
 
 
 def test_info_reply_rebuilds_the_robot_model():

@@ -144,25 +144,49 @@ class Info:
     deadman_s: float = field(metadata=bounds(0.0))
 
 
+Vector3 = Tuple[float, float, float]
+Row4 = Tuple[float, float, float, float]
+
+
 @dataclass(frozen=True)
-class SimObject:
-    kind: str  # scenario object: "can", "remote", "figure"
-    x: float
-    y: float
-    radius: float  # radius of the smallest vertical cylinder around the object, m
+class TruthPart:
+    shape: str  # "cylinder" or "box"
+    centre: Vector3  # in the object frame, m
+    size: Vector3  # cylinder (diameter, diameter, height), box extents, m
+    yaw: float
+
+
+@dataclass(frozen=True)
+class TruthObject:
+    kind: str  # "cylinder", "box", "composite"
+    centre: Tuple[float, float]  # on the floor, world, m
+    yaw: float
+    radius: float  # smallest vertical cylinder about the centre that holds the object, m
     height: float
+    parts: Tuple[TruthPart, ...]
+
+
+@dataclass(frozen=True)
+class TruthCamera:
+    stamp: float  # capture time of the last rendered frame, bridge clock
+    T_WC: Tuple[Row4, Row4, Row4, Row4]  # true camera pose in the world, optical convention
 
 
 @dataclass(frozen=True)
 class Truth:
-    """Simulator ground truth (tests and reports only; the station's estimation never reads it)."""
+    """Simulator ground truth (``SimWorld.truth()``; tests and reports only, never the estimator)."""
 
     TYPE: ClassVar[str] = "sim.truth"
+    scenario: str
+    seed: int
     stamp: float = field(metadata=bounds(0.0))
-    robot: Pose2  # true robot pose in the world
+    robot_pose: Pose2  # true robot pose in the world
+    odom_origin: Pose2  # world pose where odometry reads (0, 0, 0)
     odom: Pose2  # what odometry reports
-    T_WC: Matrix4  # true camera pose in the world, optical convention
-    object: SimObject
+    speed_scale: Vector3  # per-run walking speed scale errors
+    fallen: bool
+    camera: Optional[TruthCamera]  # None before the first frame
+    object: TruthObject
 
 
 Message = Union[WalkCommand, HeadCommand, State, FrameMeta, Info, Truth]

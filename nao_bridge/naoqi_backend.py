@@ -1,0 +1,230 @@
+"""The real robot behind :class:`RobotBackend`: NAOqi services reached through libqi (``qi``).
+
+Services and calls (NAOqi 2.x API):
+
+* ALVideoDevice: ``subscribeCamera(name, 0 = top, resolution id, colour space id, fps)``, then a
+  ``getImageRemote(handle)`` loop; ``unsubscribe(handle)`` on close. An image is the 12-field list
+  ``[width, height, layers, colour space, stamp s, stamp us, buffer, camera id, 4 angles]``; the
+  buffer arrives as ``bytes``/``bytearray`` or, through the Python binding, as latin-1 text.
+  YUV422 is packed YUYV (2 bytes per pixel) and converted with ``cv2.COLOR_YUV2BGR_YUYV``.
+  A frame whose stamp equals the previous one is a duplicate (the camera has not produced a new
+  image yet) and is skipped.
+* ALMotion: ``move(vx, vy, omega)`` (m/s, m/s, rad/s), ``stopMove``, ``setAngles`` for HeadYaw and
+  HeadPitch, ``getAngles(names, True)``, ``getRobotPosition(True)`` (odometry),
+  ``getTransform("CameraTop", 2 = FRAME_ROBOT, True)`` (NAO camera axes, converted once with
+  ``nao_to_optical``), ``moveIsActive``, ``wakeUp`` and ``rest``.
+* ALMemory: ``subscriber("robotHasFallen")`` and ``subscriber("ALMotion/RobotIsFalling")``
+  signals latch the fall flag; ``getData`` for the initial fall flag and the battery charge.
+* ALAutonomousLife ``setState("disabled")`` and ALRobotPosture ``goToPosture("StandInit", speed)``
+  at start, ``rest`` on close, each configurable.
+
+Clocks. Image stamps are the robot's clock. With r_k the bridge time (``time.time()``) at which
+image k was received and s_k its robot stamp, the offset is estimated as
+
+    offset = min_{k in last N frames} (r_k - s_k),    capture stamp (bridge clock) = s_k + offset
+
+r_k - s_k = true offset + latency_k with latency_k >= 0, so the minimum is the true offset plus
+the smallest observed capture-to-receive latency: stamps are at most that late, never early, and a
+clock step on either side is forgotten after N frames.
+
+The head angles, camera transform and odometry of a frame are read right after its image arrives
+(NAOqi does not return them with the image): with the head still, they are those of the capture.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Deque, List, Literal, Optional, Sequence, Union
+
+import cv2
+import numpy as np
+import qi
+
+from .backend import CameraFrame, RobotBackend, RobotState
+from .config import bounds
+from .robot_model import RobotModel, nao_to_optical
+
+log = logging.getLogger(__name__)
+
+TOP_CAMERA = 0
+FRAME_ROBOT = 2
+RESOLUTION_IDS = {"qqvga": 0, "qvga": 1, "vga": 2, "4vga": 3}
+COLOR_SPACE_IDS = {"yuv422": 9, "bgr": 13}
+HEAD_JOINTS = ["HeadYaw", "HeadPitch"]
+FALL_KEYS = ("robotHasFallen", "ALMotion/RobotIsFalling")
+BATTERY_KEY = "Device/SubDeviceList/Battery/Charge/Sensor/Value"
+
+
+@dataclass(frozen=True)
+class NaoqiParams:
+    """NAOqi options of the bridge (``bridge.naoqi`` in config/bridge.yaml)."""
+
+    color_space: Literal["yuv422", "bgr"] = "yuv422"
+    disable_autonomous_life: bool = True
+    stand_init_at_start: bool = True
+    stand_init_speed: float = field(default=0.5, metadata=bounds(0.05, 1.0))
+    rest_on_exit: bool = True
+    use_sensors: bool = True  # odometry and head angles from sensors rather than commands
+    clock_window: int = field(default=100, metadata=bounds(1, 100000))  # frames in the offset minimum
+    client_name: str = "nao_active_recon"
+
+
+def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes, bytearray, str]) -> np.ndarray:
+    """A NAOqi image buffer (bytes or latin-1 text) in BGR or packed YUV422 -> H x W x 3 BGR."""
+    raw = buffer.encode("latin-1") if isinstance(buffer, str) else bytes(buffer)
+    layers = {COLOR_SPACE_IDS["bgr"]: 3, COLOR_SPACE_IDS["yuv422"]: 2}.get(color_space)
+    if layers is None:
+        raise ValueError(f"image colour space {color_space}: expected one of {sorted(COLOR_SPACE_IDS.values())}")
+    if len(raw) != width * height * layers:
+        raise ValueError(f"image buffer of {len(raw)} bytes, expected {width}x{height}x{layers}")
+    pixels = np.frombuffer(raw, np.uint8).reshape(height, width, layers)
+    if layers == 3:
+        return pixels.copy()
+    return cv2.cvtColor(pixels, cv2.COLOR_YUV2BGR_YUYV)
+
+
+class ClockOffset:
+    """Robot clock -> bridge clock: minimum of (receive time - robot stamp) over a window."""
+
+    def __init__(self, window: int):
+        self._samples: Deque[float] = collections.deque(maxlen=window)
+
+    def update(self, robot_stamp: float, received: float) -> float:
+        """Record one image; return its capture time on the bridge clock."""
+        self._samples.append(received - robot_stamp)
+        return robot_stamp + min(self._samples)
+
+
+class NaoqiBackend(RobotBackend):
+    """A NAO reached at ``url`` (e.g. ``tcp://nao.local:9559``)."""
+
+    def __init__(self, url: str, model: RobotModel, params: NaoqiParams, resolution: str, fps: float):
+        model.camera.intrinsics(resolution)  # KeyError naming the resolution if the model lacks it
+        if resolution not in RESOLUTION_IDS:
+            raise ValueError(f"NAOqi resolution {resolution!r}: expected one of {sorted(RESOLUTION_IDS)}")
+        self.url = url
+        self.model = model
+        self.params = params
+        self.resolution = resolution
+        self.fps = fps
+        self._session: Optional[Any] = None
+        self._camera: Optional[str] = None
+        self._fall_links: List[tuple] = []
+        self._fallen = threading.Event()
+        self._clock = ClockOffset(params.clock_window)
+        self._last_stamp: Optional[tuple] = None
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self.duplicates = 0
+
+    def start(self) -> None:
+        session = qi.Session()
+        try:
+            session.connect(self.url)
+        except RuntimeError as exc:
+            raise ConnectionError(f"cannot reach NAOqi at {self.url}: {exc}") from None
+        self._session = session
+        self.motion = session.service("ALMotion")
+        self.video = session.service("ALVideoDevice")
+        self.memory = session.service("ALMemory")
+        if self.params.disable_autonomous_life:
+            session.service("ALAutonomousLife").setState("disabled")
+        self.motion.wakeUp()
+        if self.params.stand_init_at_start:
+            session.service("ALRobotPosture").goToPosture("StandInit", self.params.stand_init_speed)
+        for key in FALL_KEYS:
+            subscriber = self.memory.subscriber(key)
+            link = subscriber.signal.connect(self._on_fall_event)
+            self._fall_links.append((subscriber, link))
+            if self.memory.getData(key):
+                self._fallen.set()
+        self._camera = self.video.subscribeCamera(
+            self.params.client_name,
+            TOP_CAMERA,
+            RESOLUTION_IDS[self.resolution],
+            COLOR_SPACE_IDS[self.params.color_space],
+            int(round(self.fps)),
+        )
+        log.info("NAOqi at %s: camera %s %s at %g fps", self.url, self.resolution, self.params.color_space, self.fps)
+
+    def _on_fall_event(self, value: Any) -> None:
+        if value:
+            if not self._fallen.is_set():
+                log.warning("NAOqi reports a fall")
+            self._fallen.set()
+
+    def grab_frame(self, timeout: float) -> Optional[CameraFrame]:
+        deadline = time.monotonic() + timeout
+        poll = 0.25 / max(self.fps, 1.0)
+        while True:
+            image = self.video.getImageRemote(self._camera)
+            received = time.time()
+            if image and len(image) >= 7:
+                robot_stamp = (int(image[4]), int(image[5]))
+                if robot_stamp != self._last_stamp:
+                    self._last_stamp = robot_stamp
+                    return self._frame(image, robot_stamp[0] + 1e-6 * robot_stamp[1], received)
+                self.duplicates += 1
+            if time.monotonic() + poll > deadline:
+                return None
+            time.sleep(poll)
+
+    def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> CameraFrame:
+        bgr = image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6])
+        stamp = self._clock.update(robot_stamp, received)
+        yaw, pitch = self.motion.getAngles(HEAD_JOINTS, self.params.use_sensors)
+        T_nao = np.asarray(self.motion.getTransform("CameraTop", FRAME_ROBOT, self.params.use_sensors), float)
+        odom = self.motion.getRobotPosition(self.params.use_sensors)
+        return CameraFrame(
+            image=bgr,
+            stamp=stamp,
+            head_yaw=float(yaw),
+            head_pitch=float(pitch),
+            T_BC=nao_to_optical(T_nao.reshape(4, 4)),
+            odom=(float(odom[0]), float(odom[1]), float(odom[2])),
+        )
+
+    def walk(self, v: float, vy: float, omega: float) -> None:
+        self.motion.move(float(v), float(vy), float(omega))
+
+    def stop_walking(self) -> None:
+        self.motion.stopMove()
+
+    def set_head(self, yaw: float, pitch: float, speed_fraction: float) -> None:
+        self.motion.setAngles(HEAD_JOINTS, [float(yaw), float(pitch)], float(speed_fraction))
+
+    def read_state(self) -> RobotState:
+        odom = self.motion.getRobotPosition(self.params.use_sensors)
+        yaw, pitch = self.motion.getAngles(HEAD_JOINTS, self.params.use_sensors)
+        return RobotState(
+            stamp=time.time(),
+            odom=(float(odom[0]), float(odom[1]), float(odom[2])),
+            head_yaw=float(yaw),
+            head_pitch=float(pitch),
+            walking=bool(self.motion.moveIsActive()),
+            fallen=self._fallen.is_set(),
+            battery=min(max(float(self.memory.getData(BATTERY_KEY)), 0.0), 1.0),
+        )
+
+    def close(self) -> None:
+        with self._close_lock:
+            if self._closed or self._session is None:
+                self._closed = True
+                return
+            self._closed = True
+        steps = [("stopMove", self.motion.stopMove)]
+        steps += [("disconnect fall signal", lambda s=s, k=k: s.signal.disconnect(k)) for s, k in self._fall_links]
+        if self._camera is not None:
+            steps.append(("unsubscribe camera", lambda: self.video.unsubscribe(self._camera)))
+        if self.params.rest_on_exit:
+            steps.append(("rest", self.motion.rest))
+        steps.append(("close session", self._session.close))
+        for name, step in steps:  # each step runs even when an earlier one failed
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001 - a dead robot link must not stop the shutdown
+                log.error("NAOqi close: %s failed: %s", name, exc)
