@@ -20,8 +20,10 @@ from typing import Any, Dict, Sequence, Union
 
 import yaml
 
+from agent.carving import CarvingParams
 from agent.ekf import EKFParams
 from agent.mission import MissionParams
+from agent.planner import PlannerParams
 from nao_bridge.config import CONFIG_DIR, ConfigError, bounds, load
 from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
 
@@ -45,6 +47,8 @@ SECTIONS: Dict[str, type] = {
     "station": StationParams,
     "mission": MissionParams,
     "ekf": EKFParams,
+    "planner": PlannerParams,
+    "carving": CarvingParams,
 }
 ROBOT_SECTION = "robot"
 
@@ -54,8 +58,14 @@ class StationConfig:
     station: StationParams
     mission: MissionParams
     ekf: EKFParams
+    planner: PlannerParams
+    carving: CarvingParams
     landmarks: LandmarkMap
     overrides: Sequence[Path] = ()
+
+    @property
+    def section_names(self) -> Sequence[str]:
+        return tuple(SECTIONS)
 
     @property
     def robot_overrides(self) -> Sequence[Path]:

@@ -33,6 +33,11 @@ from mcap_protobuf.schema import register_schema
 JsonPayload = Union[bytes, Dict[str, Any]]
 
 
+def encode_json(payload: Dict[str, Any]) -> bytes:
+    """Compact JSON as logged (replay compares outputs in this form, byte for byte)."""
+    return json.dumps(payload, separators=(",", ":")).encode()
+
+
 def to_ns(t: float) -> int:
     return int(round(t * 1e9))
 
@@ -55,7 +60,7 @@ class McapLog:
 
     def json(self, topic: str, payload: JsonPayload, t: float, schema: Dict[str, Any]) -> None:
         """Log a JSON message: ``bytes`` are logged as they are, a dict is serialized."""
-        data = payload if isinstance(payload, bytes) else json.dumps(payload, separators=(",", ":")).encode()
+        data = payload if isinstance(payload, bytes) else encode_json(payload)
         name = schema.get("title", topic)
         with self._lock:
             channel = self._channel(topic, "json", lambda: self._schema(name, "jsonschema", json.dumps(schema).encode()))

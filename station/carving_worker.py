@@ -1,0 +1,72 @@
+"""Live space carving in a worker thread, fed with keyframes; never blocks the control loop.
+
+``submit`` only enqueues (mask, T_WC, estimate). The worker creates its carver at the first
+keyframe, with the volume around the estimate of that moment (:func:`agent.carving.volume_bounds`,
+which widens it by ``sigma_scale`` standard deviations), and carves every keyframe as it comes:
+the live hull, for progress and the log. ``finish`` drains the queue and carves the final model
+from all keyframes in a volume around the *final* estimate (the grid does not depend on the order
+of views, so this equals ``station carve`` on the log with the same parameters).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from typing import Callable, List, Optional, Tuple
+
+import numpy as np
+
+from agent.camera import CameraModel
+from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, volume_bounds
+
+View = Tuple[np.ndarray, CameraModel, np.ndarray]
+
+
+def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], params: CarvingParams,
+                pitch: Optional[float] = None) -> VoxelCarver:
+    """The final model: all views carved in the volume around the estimate (x, P)."""
+    lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
+    return carve(views, lo, hi, pitch, params)
+
+
+class CarvingWorker:
+    def __init__(self, params: CarvingParams, camera: CameraModel,
+                 on_progress: Callable[[HullMetrics, int], None] = lambda metrics, views: None):
+        self.params = params
+        self.camera = camera
+        self.views: List[View] = []
+        self.live: Optional[VoxelCarver] = None
+        self.error: Optional[str] = None
+        self._on_progress = on_progress
+        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]]" = queue.Queue()
+        self._thread = threading.Thread(target=self._run, name="carving", daemon=True)
+        self._thread.start()
+
+    def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray) -> None:
+        self._queue.put((mask, T_WC, x.copy(), P.copy()))
+
+    def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
+        """Stop the worker and carve the final model (None without keyframes or an estimate)."""
+        self._queue.put(None)
+        self._thread.join(timeout)
+        if x is None or not self.views:
+            return None
+        return carve_views(self.views, x, P, self.params)
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            mask, T_WC, x, P = item
+            view = (mask, self.camera, T_WC)
+            self.views.append(view)
+            if self.error is not None:
+                continue
+            try:
+                if self.live is None:
+                    self.live = VoxelCarver.from_estimate(x[:2], float(x[2]), self.params, P, [view])
+                self.live.add_view(*view)
+                self._on_progress(self.live.metrics(), len(self.views))
+            except ValueError as exc:  # e.g. a volume too large for max_voxels: keep the views, say why
+                self.error = f"live carving stopped: {exc}"

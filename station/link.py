@@ -1,0 +1,121 @@
+"""The station's Zenoh link to one bridge: info, frames, state, truth, liveliness, commands.
+
+Everything the bridge sends lands in one inbox, in arrival order, stamped with the station clock
+when it arrived; the control loop drains it. Frame bytes go to a mailbox and only a wake-up goes
+through the inbox: the loop takes every frame that arrived since its last pass, logs them all and
+processes only the newest, so a slow pass never builds a backlog of stale frames, and callbacks
+never block Zenoh's receive thread. The bridge's liveliness token going away
+(crash, exit, or a frozen peer after the link lease) becomes a ``bridge_lost`` event; the
+station declares its own token so the bridge can stop the robot when the station goes away.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
+
+import zenoh
+
+from nao_bridge.protocol import HeadCommand, Info, RobotKeys, WalkCommand, decode, encode
+from nao_bridge.transport import TransportConfig, open_session
+
+
+@dataclass(frozen=True)
+class Received:
+    kind: str  # 'frame', 'state', 'truth', 'bridge_lost'
+    t: float  # station clock at arrival, s
+    payload: bytes = b""
+
+
+class BridgeUnavailable(RuntimeError):
+    """The bridge could not be reached or did not answer its info query."""
+
+
+class BridgeLink:
+    def __init__(self, endpoint: str, robot_name: str, lease_ms: int):
+        self.endpoint = endpoint
+        self.keys = RobotKeys(robot_name)
+        try:
+            self.session = open_session(TransportConfig(connect=(endpoint,), lease_ms=lease_ms))
+        except zenoh.ZError as exc:
+            raise BridgeUnavailable(f"cannot open a Zenoh session to {endpoint}: {exc}") from None
+        self.inbox: "queue.Queue[Received]" = queue.Queue()
+        self._frame_lock = threading.Lock()
+        self._frames: List[Received] = []  # arrived since the last take_frames()
+        self._declared: list = []
+        self._seq = 0
+
+    def fetch_info(self, timeout: float) -> Tuple[Info, bytes]:
+        """The bridge's info and its bytes as received; retries until ``timeout`` (s)."""
+        deadline = time.monotonic() + timeout
+        last_error = "no reply"
+        while time.monotonic() < deadline:
+            for reply in self.session.get(self.keys.info, timeout=min(1.0, max(0.1, deadline - time.monotonic()))):
+                if reply.ok is None:
+                    last_error = f"error reply: {reply.err.payload.to_bytes()[:200]!r}"
+                    continue
+                payload = reply.ok.payload.to_bytes()
+                return decode(payload, Info), payload
+            time.sleep(0.1)
+        raise BridgeUnavailable(f"no info from the bridge at {self.endpoint} on {self.keys.info} within {timeout:g} s ({last_error})")
+
+    def start(self) -> None:
+        """Subscribe to everything and declare the station's liveliness token."""
+        sub = self.session.declare_subscriber
+        self._declared += [
+            sub(self.keys.camera_top, self._on_frame),
+            sub(self.keys.state, lambda s: self._put("state", s)),
+            sub(self.keys.sim_truth, lambda s: self._put("truth", s)),
+            self.session.liveliness().declare_subscriber(self.keys.alive, self._on_alive, history=True),
+            self.session.liveliness().declare_token(self.keys.station_alive),
+        ]
+        block = zenoh.CongestionControl.BLOCK
+        self._walk = self.session.declare_publisher(self.keys.cmd_walk, congestion_control=block)
+        self._head = self.session.declare_publisher(self.keys.cmd_head, congestion_control=block)
+
+    def take_frames(self) -> List[Received]:
+        with self._frame_lock:
+            frames, self._frames = self._frames, []
+        return frames
+
+    def send_walk(self, vx: float, vy: float, omega: float, ttl: float) -> WalkCommand:
+        command = WalkCommand(seq=self._next_seq(), vx=vx, vy=vy, omega=omega, ttl=ttl)
+        self._walk.put(encode(command))
+        return command
+
+    def send_head(self, yaw: float, pitch: float, speed: float) -> HeadCommand:
+        command = HeadCommand(seq=self._next_seq(), yaw=yaw, pitch=pitch, speed=speed)
+        self._head.put(encode(command))
+        return command
+
+    def close(self) -> None:
+        """Undeclare everything (the station token disappears) and close the session. Idempotent."""
+        declared, self._declared = self._declared, []
+        for entity in reversed(declared):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass
+        try:
+            self.session.close()
+        except zenoh.ZError:
+            pass
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    def _put(self, kind: str, sample: zenoh.Sample) -> None:
+        self.inbox.put(Received(kind, time.time(), sample.payload.to_bytes()))
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        with self._frame_lock:
+            self._frames.append(Received("frame", time.time(), sample.payload.to_bytes()))
+        self.inbox.put(Received("frame", time.time()))  # wakes the loop; the bytes are in the mailbox
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.inbox.put(Received("bridge_lost", time.time()))
