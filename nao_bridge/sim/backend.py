@@ -1,0 +1,69 @@
+"""SimBackend: the simulated NAO behind the bridge's ``RobotBackend`` interface.
+
+Frames are paced at ``fps`` on the world's clock: ``grab_frame`` waits for the next frame slot
+(t_k = t_0 + k / fps, skipping slots already past, as a camera does) and renders it. ``close``
+wakes a waiting ``grab_frame`` at once.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Optional
+
+from ..backend import CameraFrame, RobotBackend, RobotState
+from .world import SimWorld
+
+
+class SimBackend(RobotBackend):
+    def __init__(self, world: SimWorld, fps: Optional[float] = None):
+        fps = world.config.fps if fps is None else fps
+        if not fps > 0.0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.world = world
+        self.period = 1.0 / fps
+        self._closed = threading.Event()
+        self._next_slot: Optional[float] = None
+        self._grab_lock = threading.Lock()
+
+    def start(self) -> None:
+        self._closed.clear()
+        self._next_slot = time.time()
+
+    def close(self) -> None:
+        if not self._closed.is_set():
+            self._closed.set()
+            self.world.stop_walking()
+
+    def grab_frame(self, timeout: float) -> Optional[CameraFrame]:
+        with self._grab_lock:
+            if self._closed.is_set():
+                return None
+            now = time.time()
+            if self._next_slot is None:
+                self._next_slot = now
+            if self._next_slot < now - self.period:  # slots missed: skip to the next one
+                self._next_slot += self.period * int((now - self._next_slot) / self.period)
+            wait = self._next_slot - now
+            if wait > timeout:
+                self._closed.wait(timeout)
+                return None
+            if wait > 0.0 and self._closed.wait(wait):
+                return None
+            self._next_slot += self.period
+            return self.world.render()
+
+    def walk(self, v: float, vy: float, omega: float) -> None:
+        self.world.walk(v, vy, omega)
+
+    def stop_walking(self) -> None:
+        self.world.stop_walking()
+
+    def set_head(self, yaw: float, pitch: float, speed_fraction: float) -> None:
+        self.world.set_head(yaw, pitch, speed_fraction)
+
+    def read_state(self) -> RobotState:
+        return self.world.state()
+
+    def ground_truth(self) -> dict:
+        return self.world.truth()

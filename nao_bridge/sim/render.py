@@ -1,0 +1,320 @@
+"""Camera renderer of the simulated room: a pinhole camera, numpy/OpenCV only.
+
+Background, per pixel by ray casting (rays precomputed once, distortion removed)::
+
+    d_W = R_WC [x_n, y_n, 1]^T,   floor:  t_f = -c_z / d_z  (d_z < 0),
+    walls:  t_x = (sign(d_x) h - c_x) / d_x,  t_y = (sign(d_y) h - c_y) / d_y,  t_w = min(t_x, t_y),
+
+a pixel shows the floor when t_f < t_w, else the wall (the ceiling above ``wall_height``); the hit
+point c + t d indexes a periodic texture (1 m floor tiles, painted walls with a skirting board).
+
+Foreground, in painter's order (farthest first, by the distance from the camera to each item's
+centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-pixel precision:
+
+* convex solids (object parts, posts): the silhouette is the convex hull of the projected vertices
+  (exact for a box's corners and for a vertical cylinder's two end circles), after clipping the
+  solid at the near plane z_C = NEAR (the hull of the vertices in front plus the near-plane
+  crossings of every segment joining a vertex in front to one behind); flat shading: a vertical
+  cylinder's side and top cap, each box face facing the camera, coloured by Lambert's law;
+* ArUco markers: a white board standing on the floor (the quiet zone) and the marker image of
+  ``cv2.aruco.generateImageMarker`` mapped onto the projected corners by ``cv2.warpPerspective``;
+* colour landmarks: a disc of the landmark's diameter facing the camera (a ball's outline), on a post.
+
+Finally a per-frame exposure gain and Gaussian pixel noise (drawn from a seeded pool).
+Polygon edges are straight between projected vertices: exact for the default zero distortion.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from ..landmark_map import Landmark, LandmarkMap
+from ..robot_model import CameraIntrinsics
+from .scenarios import Part, Room, Scenario
+
+NEAR = 0.02  # m, near clipping plane
+SHIFT = 4  # sub-pixel bits of cv2 polygon filling
+LIGHT = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])  # direction towards the light, world
+AMBIENT = 0.55
+TEXELS_PER_M = 256  # floor and wall textures repeat every metre
+BOARD_MARGIN = 0.25  # white quiet zone around a marker, fraction of its side
+POST_RADIUS = 0.01  # m
+COLOURS_BGR = {
+    "green": (60, 170, 40),
+    "yellow": (30, 210, 230),
+    "magenta": (200, 50, 200),
+    "cyan": (210, 200, 40),
+    "blue": (200, 90, 30),
+}
+
+
+def _shade(color: Sequence[int], normal: np.ndarray) -> Tuple[int, int, int]:
+    k = AMBIENT + (1.0 - AMBIENT) * max(0.0, float(np.dot(normal, LIGHT)))
+    return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
+
+
+class _View:
+    """One camera pose: world-to-camera transform and projection."""
+
+    def __init__(self, T_WC: np.ndarray, intrinsics: CameraIntrinsics):
+        self.R_CW = T_WC[:3, :3].T
+        self.t_CW = -self.R_CW @ T_WC[:3, 3]
+        self.centre = T_WC[:3, 3]
+        self.K = intrinsics.K
+        self.dist = np.asarray(intrinsics.dist, dtype=float)
+
+    def to_camera(self, points_W: np.ndarray) -> np.ndarray:
+        return points_W @ self.R_CW.T + self.t_CW
+
+    def project(self, points_C: np.ndarray) -> np.ndarray:
+        uv, _ = cv2.projectPoints(points_C.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(-1, 2)
+
+
+def _fixed(uv: np.ndarray) -> np.ndarray:
+    return np.round(uv * (1 << SHIFT)).astype(np.int32)
+
+
+def _fill(image: np.ndarray, uv: np.ndarray, color: Tuple[int, int, int]) -> None:
+    cv2.fillConvexPoly(image, _fixed(uv), color, lineType=cv2.LINE_AA, shift=SHIFT)
+
+
+def _clip_near(points_C: np.ndarray) -> np.ndarray:
+    """Vertices of the convex hull of ``points_C`` cut by the near plane (may be empty)."""
+    front = points_C[:, 2] >= NEAR
+    if front.all() or not front.any():
+        return points_C[front]
+    a, b = points_C[front], points_C[~front]
+    s = (NEAR - a[:, None, 2]) / (b[None, :, 2] - a[:, None, 2])
+    cuts = a[:, None, :] + s[..., None] * (b[None, :, :] - a[:, None, :])
+    return np.vstack([a, cuts.reshape(-1, 3)])
+
+
+def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Tuple[int, int, int]) -> None:
+    pts = _clip_near(view.to_camera(points_W))
+    if len(pts) >= 3:
+        uv = view.project(pts).astype(np.float32)
+        _fill(image, cv2.convexHull(uv).reshape(-1, 2), color)
+
+
+@dataclass
+class _Solid:
+    """A convex part with flat-shaded faces: a vertical cylinder or a box."""
+
+    part: Part
+    points_W: np.ndarray  # hull vertices
+    color: Tuple[int, int, int]
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.points_W.mean(axis=0)
+
+    def draw(self, image: np.ndarray, view: _View) -> None:
+        side_normal = np.array([1.0, 0.0, 0.0]) if self.part.shape == "cylinder" else np.zeros(3)
+        _fill_hull(image, view, self.points_W, _shade(self.color, side_normal))
+        n = len(self.points_W) // 2
+        bottom, top = self.points_W[:n], self.points_W[n:]
+        if self.part.shape == "cylinder":
+            if view.centre[2] > top[0, 2]:
+                _fill_hull(image, view, top, _shade(self.color, np.array([0.0, 0.0, 1.0])))
+            return
+        centre = self.centre
+        faces = [top, bottom] + [np.array([bottom[i], bottom[(i + 1) % 4], top[(i + 1) % 4], top[i]]) for i in range(4)]
+        for face in faces:
+            normal = np.cross(face[1] - face[0], face[2] - face[0])
+            normal /= np.linalg.norm(normal)
+            if np.dot(normal, face.mean(axis=0) - centre) < 0:
+                normal = -normal
+            if np.dot(normal, view.centre - face.mean(axis=0)) > 1e-9:
+                _fill_hull(image, view, face, _shade(self.color, normal))
+
+
+def _post(x: float, y: float, top: float) -> np.ndarray:
+    a = np.linspace(0.0, 2.0 * math.pi, 12, endpoint=False)
+    ring = np.column_stack([x + POST_RADIUS * np.cos(a), y + POST_RADIUS * np.sin(a)])
+    return np.vstack([np.column_stack([ring, np.full(12, z)]) for z in (0.0, top)])
+
+
+@dataclass
+class _MarkerBoard:
+    """An ArUco marker on a white board standing on the floor, facing along the landmark's yaw."""
+
+    landmark: Landmark
+    corners_W: np.ndarray  # 4 x 3, cv2.aruco order
+    board_W: np.ndarray  # 4 x 3
+    texture: np.ndarray  # marker image, black square = whole image
+
+    @classmethod
+    def build(cls, lm: Landmark, texels: int = 60) -> "_MarkerBoard":
+        corners = lm.aruco_corners()
+        m = BOARD_MARGIN * lm.size
+        right = (corners[1] - corners[0]) / lm.size
+        top_left, top_right = corners[0] + m * (np.array([0, 0, 1.0]) - right), corners[1] + m * (np.array([0, 0, 1.0]) + right)
+        floor = np.array([1.0, 1.0, 0.0])
+        board = np.array([top_left, top_right, top_right * floor, top_left * floor])
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, lm.dictionary))
+        texture = cv2.aruco.generateImageMarker(dictionary, int(lm.id), texels, borderBits=1)
+        return cls(lm, corners, board, cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR))
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.board_W.mean(axis=0)
+
+    def draw(self, image: np.ndarray, view: _View) -> None:
+        front = np.dot(self.landmark.normal, view.centre - self.centre) > 0
+        board_C = view.to_camera(self.board_W)
+        if not front:
+            _fill_hull(image, view, self.board_W, (150, 150, 150))
+            return
+        _fill_hull(image, view, self.board_W, _shade((235, 235, 235), self.landmark.normal))
+        corners_C = view.to_camera(self.corners_W)
+        if (corners_C[:, 2] < NEAR).any() or (board_C[:, 2] < NEAR).all():
+            return
+        uv = view.project(corners_C).astype(np.float32)
+        x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 1
+        x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 2
+        h, w = image.shape[:2]
+        x0c, y0c, x1c, y1c = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        if x0c >= x1c or y0c >= y1c:
+            return
+        s = self.texture.shape[0]
+        src = np.float32([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]])
+        H = cv2.getPerspectiveTransform(src, uv - np.float32([x0c, y0c]))
+        size = (x1c - x0c, y1c - y0c)
+        warped = cv2.warpPerspective(self.texture, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mask = np.zeros((size[1], size[0]), np.uint8)
+        _fill(mask, uv - np.float32([x0c, y0c]), (255,))
+        roi = image[y0c:y1c, x0c:x1c]
+        alpha = mask[..., None].astype(np.float32) * (1.0 / 255.0)
+        roi[:] = (warped * alpha + roi * (1.0 - alpha)).astype(np.uint8)
+
+
+@dataclass
+class _ColourDisc:
+    """A coloured landmark: a disc facing the camera on a thin grey post."""
+
+    landmark: Landmark
+    color: Tuple[int, int, int]
+
+    @property
+    def centre(self) -> np.ndarray:
+        return np.asarray(self.landmark.position, dtype=float)
+
+    def draw(self, image: np.ndarray, view: _View) -> None:
+        x, y, z = self.landmark.position
+        _fill_hull(image, view, _post(x, y, z), (110, 110, 110))
+        c = view.to_camera(self.centre[None])[0]
+        radius = 0.5 * self.landmark.diameter
+        if c[2] < NEAR + radius:
+            return
+        uv = view.project(c[None])[0]
+        r_px = view.K[0, 0] * radius / float(np.linalg.norm(c))
+        cv2.circle(image, tuple(int(v) for v in _fixed(uv)), int(round(r_px * (1 << SHIFT))), self.color, -1, cv2.LINE_AA, SHIFT)
+
+
+def _textures(room: Room) -> Tuple[np.ndarray, int]:
+    """A texture atlas: floor (1 m square, 0.5 m carpet tiles) above the wall (1 m wide, floor to top).
+
+    Rows [0, S) are the floor, rows [S, S + wall rows) the wall from z = 0 upwards; the last row is
+    the ceiling. Returns the atlas flattened to (rows * S, 3) and the number of wall rows.
+    """
+    S = TEXELS_PER_M
+    rng = np.random.default_rng(12345)  # a fixed texture, not a per-run draw
+    yy, xx = np.mgrid[0:S, 0:S]
+    tile = ((xx // (S // 2)) + (yy // (S // 2))) % 2
+    floor = np.empty((S, S, 3), np.float32)
+    floor[:] = np.array([120.0, 125.0, 130.0])
+    floor += (tile * 14.0)[..., None] + rng.normal(0.0, 6.0, (S, S, 1))
+    grout = (xx % (S // 2) < 2) | (yy % (S // 2) < 2)
+    floor[grout] = (80.0, 80.0, 85.0)
+    wall_rows = int(math.ceil(room.wall_height * S)) + 1
+    wall = np.empty((wall_rows, S, 3), np.float32)
+    wall[:] = np.array([190.0, 205.0, 215.0])
+    wall += rng.normal(0.0, 4.0, (1, S, 1)) + rng.normal(0.0, 2.0, (wall_rows, S, 1))
+    wall[: int(0.08 * S)] = (70.0, 85.0, 100.0)  # skirting board
+    wall[-1] = (235.0, 235.0, 235.0)  # ceiling
+    atlas = np.clip(np.vstack([floor, wall]), 0, 255).astype(np.uint8)
+    return atlas.reshape(-1, 3), wall_rows
+
+
+class Renderer:
+    """Renders BGR images of the room, landmarks and object from a camera pose T_WC (optical)."""
+
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        room: Room,
+        landmarks: LandmarkMap,
+        scenario: Scenario,
+        pixel_sigma: float,
+        gain_sigma: float,
+        seed: int,
+    ):
+        self.intrinsics = intrinsics
+        self.room = room
+        w, h = intrinsics.width, intrinsics.height
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+        normalized = cv2.undistortPoints(pix, intrinsics.K, np.asarray(intrinsics.dist, dtype=float)).reshape(-1, 2)
+        self._rays = np.vstack([normalized.T, np.ones(len(normalized))]).astype(np.float32)  # 3 x N, z = 1
+        self._atlas, self._wall_rows = _textures(room)
+        self._items: List = [_Solid(p, p.world_points(scenario.position, scenario.yaw), scenario.color) for p in scenario.parts]
+        for lm in landmarks.landmarks:
+            if lm.kind == "aruco":
+                self._items.append(_MarkerBoard.build(lm))
+            else:
+                if lm.color not in COLOURS_BGR:
+                    raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {sorted(COLOURS_BGR)}")
+                self._items.append(_ColourDisc(lm, COLOURS_BGR[lm.color]))
+        rng = np.random.default_rng(seed)
+        self._noise = [rng.normal(0.0, pixel_sigma, (h + 16, w + 16, 3)).astype(np.int16) for _ in range(4)]
+        self._pixel_sigma = pixel_sigma
+        self._gain_sigma = gain_sigma
+        self._seed = seed
+
+    def background(self, T_WC: np.ndarray) -> np.ndarray:
+        """Floor, walls and ceiling seen from T_WC (H x W x 3 BGR)."""
+        S, hs = TEXELS_PER_M, self.room.half_size
+        cx, cy, cz = (float(c) for c in T_WC[:3, 3])
+        dx, dy, dz = T_WC[:3, :3].astype(np.float32) @ self._rays
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tx = (np.copysign(np.float32(hs), dx) - cx) / dx
+            ty = (np.copysign(np.float32(hs), dy) - cy) / dy
+            tf = np.float32(-cz) / dz
+        tw = np.minimum(tx, ty)
+        floor = (dz < 0) & (tf < tw)
+        t = np.where(floor, tf, tw)
+        hx = (cx + t * dx) * S
+        hy = (cy + t * dy) * S
+        along = np.where(tx < ty, hy, hx)
+        hz = np.clip((cz + t * dz) * S, 0, self._wall_rows - 1)
+        col = np.where(floor, hx, along).astype(np.int64) & (S - 1)
+        row = np.where(floor, hy.astype(np.int64) & (S - 1), S + hz.astype(np.int64))
+        return self._atlas[row * S + col].reshape(self.intrinsics.height, self.intrinsics.width, 3)
+
+    def render(self, T_WC: np.ndarray, frame_index: int) -> np.ndarray:
+        """The camera image at T_WC; ``frame_index`` seeds this frame's noise (deterministic)."""
+        T_WC = np.asarray(T_WC, dtype=float)
+        image = self.background(T_WC)
+        view = _View(T_WC, self.intrinsics)
+        depth = [float(np.linalg.norm(item.centre - view.centre)) for item in self._items]
+        for i in np.argsort(depth)[::-1]:
+            self._items[i].draw(image, view)
+        return self._add_noise(image, frame_index)
+
+    def _add_noise(self, image: np.ndarray, frame_index: int) -> np.ndarray:
+        rng = np.random.default_rng((self._seed, frame_index))
+        gain = 1.0 + self._gain_sigma * float(rng.standard_normal())
+        if gain != 1.0:
+            image = cv2.convertScaleAbs(image, alpha=gain)
+        if self._pixel_sigma == 0.0:
+            return image
+        pool = self._noise[int(rng.integers(len(self._noise)))]
+        oy, ox = rng.integers(0, 16, 2)
+        h, w = image.shape[:2]
+        return cv2.add(image, pool[oy : oy + h, ox : ox + w], dtype=cv2.CV_8U)

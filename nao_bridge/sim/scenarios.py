@@ -1,0 +1,154 @@
+"""Simulator configuration: the room, the scenarios (object + robot start), dynamics and noise.
+
+Loaded from ``config/sim.yaml`` (top-level key ``sim``) with the strict loader of
+``nao_bridge.config``. An object is a union of red *parts* in its own frame O (origin on the floor
+at the object's centre, z up), placed in the world at ``position`` with heading ``yaw``:
+
+* ``cylinder``: vertical, centred at ``centre`` (x, y, z of its middle), ``size`` = (diameter,
+  diameter, height);
+* ``box``: centred at ``centre``, ``size`` = extents along its own x, y, z, turned by ``yaw`` about z.
+
+The robot starts at a seeded distance in ``start_distance`` from the object, at a seeded azimuth
+(seen from the object) in ``start_azimuth``, facing the object up to a Gaussian heading error of
+``start_heading_sigma``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Literal, Sequence, Tuple, Union
+
+import numpy as np
+
+from ..config import CONFIG_DIR, bounds, load
+
+
+@dataclass(frozen=True)
+class Part:
+    """One convex red part of an object, in the object frame O."""
+
+    shape: Literal["cylinder", "box"]
+    centre: Tuple[float, float, float] = field(metadata=bounds(-2.0, 2.0))
+    size: Tuple[float, float, float] = field(metadata=bounds(0.001, 2.0))
+    yaw: float = field(default=0.0, metadata=bounds(-math.pi, math.pi))
+
+    def __post_init__(self) -> None:
+        if self.shape == "cylinder" and self.size[0] != self.size[1]:
+            raise ValueError(f"a cylinder part has size (diameter, diameter, height), got {self.size}")
+        if self.centre[2] - 0.5 * self.size[2] < -1e-9:
+            raise ValueError(f"part {self.shape} at {self.centre} reaches below the floor")
+
+    def world_points(self, position: Tuple[float, float], yaw: float, samples: int = 72) -> np.ndarray:
+        """Vertices (N x 3, world) whose convex hull is this part: box corners or the two end circles."""
+        sx, sy, sz = (0.5 * s for s in self.size)
+        if self.shape == "box":
+            local = np.array([[x, y, z] for z in (-sz, sz) for x, y in ((-sx, -sy), (sx, -sy), (sx, sy), (-sx, sy))])
+            local[:, :2] = local[:, :2] @ _rot2(self.yaw).T
+        else:
+            a = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
+            ring = np.stack([sx * np.cos(a), sx * np.sin(a)], axis=1)
+            local = np.vstack([np.column_stack([ring, np.full(samples, z)]) for z in (-sz, sz)])
+        local = local + np.asarray(self.centre)
+        local[:, :2] = local[:, :2] @ _rot2(yaw).T + np.asarray(position)
+        return local
+
+
+def _rot2(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """An object to find and where the robot starts."""
+
+    kind: Literal["cylinder", "box", "composite"]
+    position: Tuple[float, float] = field(metadata=bounds(-2.5, 2.5))  # object centre on the floor, world, m
+    yaw: float = field(metadata=bounds(-math.pi, math.pi))
+    color: Tuple[int, int, int] = field(metadata=bounds(0, 255))  # BGR of a lit face
+    parts: Tuple[Part, ...]
+    start_distance: Tuple[float, float] = field(metadata=bounds(0.3, 3.0))  # m
+    start_azimuth: Tuple[float, float] = field(metadata=bounds(-2 * math.pi, 2 * math.pi))  # rad, seen from the object
+    start_heading_sigma: float = field(metadata=bounds(0.0, 1.0))  # rad
+
+    def __post_init__(self) -> None:
+        if not self.parts:
+            raise ValueError("a scenario needs at least one part")
+        if self.start_distance[0] > self.start_distance[1] or self.start_azimuth[0] > self.start_azimuth[1]:
+            raise ValueError("start_distance and start_azimuth are [low, high] ranges")
+
+    def world_points(self) -> np.ndarray:
+        return np.vstack([p.world_points(self.position, self.yaw) for p in self.parts])
+
+    @property
+    def height(self) -> float:
+        return float(self.world_points()[:, 2].max())
+
+    @property
+    def radius(self) -> float:
+        """Radius of the smallest vertical cylinder about the object centre that holds the object."""
+        pts = self.world_points()
+        return float(np.max(np.hypot(pts[:, 0] - self.position[0], pts[:, 1] - self.position[1])))
+
+
+@dataclass(frozen=True)
+class Room:
+    half_size: float = field(metadata=bounds(1.0, 50.0))  # walls at x, y = +-half_size, m
+    wall_height: float = field(metadata=bounds(0.5, 10.0))  # m
+
+
+@dataclass(frozen=True)
+class Sway:
+    """Torso sway while walking: lateral shift, roll and vertical bob at the step frequency."""
+
+    frequency: float = field(metadata=bounds(0.0, 10.0))  # Hz, one lateral cycle per two steps
+    lateral: float = field(metadata=bounds(0.0, 0.1))  # m, amplitude at full speed
+    roll: float = field(metadata=bounds(0.0, 0.3))  # rad
+    bob: float = field(metadata=bounds(0.0, 0.05))  # m
+    reported_fraction: float = field(metadata=bounds(0.0, 1.0))  # share of the sway the joint sensors report
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    timestep: float = field(metadata=bounds(0.0005, 0.05))  # s, fixed integration step
+    velocity_time_constant: float = field(metadata=bounds(0.0, 5.0))  # s, first-order lag on (v, vy, omega)
+    speed_scale_sigma: Tuple[float, float, float] = field(metadata=bounds(0.0, 0.5))  # per-run scale error
+    slip_translation: float = field(metadata=bounds(0.0, 0.5))  # m per sqrt(m walked), random walk
+    slip_rotation: float = field(metadata=bounds(0.0, 0.5))  # rad per sqrt(m + rad)
+    sway: Sway
+    battery_initial: float = field(metadata=bounds(0.0, 1.0))
+    battery_drain_idle: float = field(metadata=bounds(0.0, 0.1))  # fraction per s
+    battery_drain_walking: float = field(metadata=bounds(0.0, 0.1))  # extra fraction per s while walking
+    fallen_camera_height: float = field(metadata=bounds(0.0, 1.0))  # m, torso thickness lying face down
+
+
+@dataclass(frozen=True)
+class Noise:
+    pixel_sigma: float = field(metadata=bounds(0.0, 50.0))  # Gaussian image noise, grey levels
+    gain_sigma: float = field(metadata=bounds(0.0, 0.5))  # per-frame exposure gain jitter
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    landmarks: str  # landmark map, relative to config/
+    fps: float = field(metadata=bounds(0.1, 120.0))
+    room: Room
+    dynamics: Dynamics
+    noise: Noise
+    scenarios: Dict[str, Scenario]
+
+    def scenario(self, name: str) -> Scenario:
+        if name not in self.scenarios:
+            raise KeyError(f"unknown scenario {name!r}; known: {sorted(self.scenarios)}")
+        return self.scenarios[name]
+
+    @property
+    def landmark_path(self) -> Path:
+        return CONFIG_DIR / self.landmarks
+
+
+def load_sim_config(files: Sequence[Union[str, Path]] = ()) -> SimConfig:
+    """The ``sim`` section of config/sim.yaml merged with override ``files``."""
+    return load(SimConfig, [CONFIG_DIR / "sim.yaml", *files], section="sim")

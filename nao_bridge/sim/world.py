@@ -1,0 +1,342 @@
+"""The simulated NAO in its room: body and head dynamics, odometry, fall, battery, camera, truth.
+
+Time is the real clock (``clock()``, default ``time.time``). The world advances lazily, under a
+lock, on every call, in fixed steps of ``dt`` (so a run is a function of the seed and of the command
+timeline alone, not of how often it is queried). One step:
+
+* walking velocity u = (v, vy, omega), first-order lag towards the (clamped) command c::
+
+      u <- u + (1 - exp(-dt / tau)) (c - u)
+
+* truth moves by the per-run scaled velocity plus slip, odometry by the nominal one (so odometry
+  drifts from truth; it starts at (0, 0, 0) where the robot starts)::
+
+      delta_true = diag(s) u dt + n,   n_xy ~ N(0, sigma_t^2 |u_xy dt|),  n_theta ~ N(0, sigma_r^2 (|u_xy dt| + |omega dt|))
+      delta_odom = u dt,               s ~ 1 + N(0, sigma_s^2) per axis, drawn once per run
+
+  each integrated at the mid-step heading: x += R(theta + dtheta / 2) delta_xy;
+* head joints move towards their targets at ``speed_fraction * max_speed`` each, then
+  ``robot.head.clamp``;
+* torso sway while walking, of amplitude a = max(|v|/v_max, |vy|/vy_max, |omega|/omega_max) <= 1 and
+  phase phi advancing at 2 pi f: the camera is moved by
+  ``Trans(0, a L sin phi, a B (cos 2 phi - 1) / 2) Rx(a rho sin phi)`` in the robot frame; the
+  reported camera transform contains ``reported_fraction`` of it (joint sensors see most of it);
+* a fallen robot lies face down (body pitched by 90 degrees about the feet, camera
+  ``fallen_camera_height`` above the floor) and ignores walk commands;
+* the battery drains at a constant rate, faster while walking.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import threading
+import time
+from typing import Callable, Optional, Tuple, Union
+
+import numpy as np
+
+from ..backend import CameraFrame, RobotState
+from ..landmark_map import load_landmark_map
+from ..robot_model import RobotModel, nao_to_optical
+from .render import Renderer
+from .scenarios import Scenario, SimConfig, load_sim_config
+
+Pose = Tuple[float, float, float]
+
+
+def _planar(x: float, y: float, theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0, 0.0], [0.0, c, -s, 0.0], [0.0, s, c, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _integrate(pose: np.ndarray, dx: float, dy: float, dtheta: float) -> None:
+    mid = pose[2] + 0.5 * dtheta
+    c, s = math.cos(mid), math.sin(mid)
+    pose[0] += c * dx - s * dy
+    pose[1] += s * dx + c * dy
+    pose[2] = math.remainder(pose[2] + dtheta, 2.0 * math.pi)
+
+
+class SimWorld:
+    """A simulated NAO in a room with landmarks and one object; thread-safe.
+
+    ``scenario`` is a name in the config (``can``, ``remote``, ``figure``) or a ``Scenario``.
+    """
+
+    def __init__(
+        self,
+        scenario: Union[str, Scenario],
+        robot_model: RobotModel,
+        resolution: str = "qvga",
+        seed: int = 0,
+        config: Optional[SimConfig] = None,
+        clock: Callable[[], float] = time.time,
+    ):
+        self.config = config or load_sim_config()
+        self.scenario_name = scenario if isinstance(scenario, str) else "custom"
+        self.scenario = self.config.scenario(scenario) if isinstance(scenario, str) else scenario
+        self.robot = robot_model
+        self.resolution = resolution
+        self.seed = seed
+        self.landmarks = load_landmark_map(self.config.landmark_path)
+        self.renderer = Renderer(
+            robot_model.camera.intrinsics(resolution),
+            self.config.room,
+            self.landmarks,
+            self.scenario,
+            self.config.noise.pixel_sigma,
+            self.config.noise.gain_sigma,
+            seed,
+        )
+        dyn = self.config.dynamics
+        self._dyn = dyn
+        self._rng = np.random.default_rng(seed)
+        self.speed_scale = 1.0 + self._rng.normal(0.0, 1.0, 3) * np.asarray(dyn.speed_scale_sigma)
+        self.start_pose = self._start_pose()
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._time = clock()
+        self._pose = np.array(self.start_pose)
+        self._odom = np.zeros(3)
+        self._command = np.zeros(3)
+        self._velocity = np.zeros(3)
+        self._head = np.zeros(2)
+        self._head_target = np.zeros(2)
+        self._head_speed = 0.0
+        self._phase = 0.0
+        self._amplitude = 0.0
+        self._fallen = False
+        self._battery = dyn.battery_initial
+        self._frames = 0
+        self._last_render: Optional[Tuple[float, np.ndarray]] = None
+
+    def _start_pose(self) -> Pose:
+        sc = self.scenario
+        distance = self._rng.uniform(*sc.start_distance)
+        azimuth = self._rng.uniform(*sc.start_azimuth)
+        x = sc.position[0] + distance * math.cos(azimuth)
+        y = sc.position[1] + distance * math.sin(azimuth)
+        heading = azimuth + math.pi + self._rng.normal(0.0, sc.start_heading_sigma)
+        return x, y, math.remainder(heading, 2.0 * math.pi)
+
+    # -- dynamics ----------------------------------------------------------------------------
+
+    def _advance(self) -> None:
+        """Step the world up to the clock (caller holds the lock)."""
+        dt = self._dyn.timestep
+        steps = int((self._clock() - self._time) / dt)
+        for _ in range(max(steps, 0)):
+            self._step(dt)
+        self._time += max(steps, 0) * dt
+
+    def _step(self, dt: float) -> None:
+        dyn = self._dyn
+        tau = dyn.velocity_time_constant
+        gain = 1.0 if tau == 0.0 else 1.0 - math.exp(-dt / tau)
+        self._velocity += gain * (self._command - self._velocity)
+        nominal = self._velocity * dt
+        if nominal.any():
+            ds = math.hypot(nominal[0], nominal[1])
+            true = self.speed_scale * nominal
+            true[:2] += self._rng.normal(0.0, dyn.slip_translation * math.sqrt(ds), 2)
+            true[2] += self._rng.normal(0.0, dyn.slip_rotation * math.sqrt(ds + abs(nominal[2])))
+            _integrate(self._pose, *true)
+            _integrate(self._odom, *nominal)
+        limits = self.robot.walk
+        self._amplitude = min(1.0, max(
+            abs(self._velocity[0]) / max(limits.v_max, 1e-9),
+            abs(self._velocity[1]) / max(limits.vy_max, 1e-9),
+            abs(self._velocity[2]) / max(limits.omega_max, 1e-9),
+        ))
+        self._phase = math.remainder(self._phase + 2.0 * math.pi * dyn.sway.frequency * dt * (self._amplitude > 1e-3), 2.0 * math.pi)
+        step = self._head_speed * dt
+        self._head += np.clip(self._head_target - self._head, -step, step)
+        self._head[:] = self.robot.head.clamp(*self._head)
+        walking = self._amplitude > 1e-3
+        self._battery = max(0.0, self._battery - dt * (dyn.battery_drain_idle + walking * dyn.battery_drain_walking))
+
+    def _body(self, fraction: float) -> np.ndarray:
+        """Torso motion applied to the head kinematics: the fall, else ``fraction`` of the sway."""
+        if self._fallen:
+            T = np.eye(4)
+            T[2, 3] = self._dyn.fallen_camera_height + self.robot.camera.offset[0]
+            c, s = 0.0, 1.0  # pitched forward by 90 degrees: up becomes forward
+            T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            return T
+        sway, a, phi = self._dyn.sway, self._amplitude * fraction, self._phase
+        T = _rot_x(a * sway.roll * math.sin(phi))
+        T[1, 3] = a * sway.lateral * math.sin(phi)
+        T[2, 3] = a * sway.bob * 0.5 * (math.cos(2.0 * phi) - 1.0)
+        return T
+
+    def _camera_nao(self, fraction: float) -> np.ndarray:
+        return self._body(fraction) @ self.robot.camera_in_robot_nao(*self._head)
+
+    # -- commands ------------------------------------------------------------------------------
+
+    def walk(self, v: float, vy: float, omega: float) -> None:
+        """Walk at (v, vy, omega) (m/s, m/s, rad/s), clamped to the walk limits; ignored once fallen."""
+        _check_finite(v=v, vy=vy, omega=omega)
+        with self._lock:
+            self._advance()
+            if not self._fallen:
+                self._command[:] = self.robot.walk.clamp(v, vy, omega)
+
+    def stop_walking(self) -> None:
+        """Command zero velocity; the walk decelerates with the velocity lag."""
+        with self._lock:
+            self._advance()
+            self._command[:] = 0.0
+
+    def set_head(self, yaw: float, pitch: float, speed_fraction: float) -> None:
+        """Move the head towards (yaw, pitch) (clamped) at ``speed_fraction`` of the maximum joint speed."""
+        _check_finite(yaw=yaw, pitch=pitch, speed_fraction=speed_fraction)
+        if not 0.0 < speed_fraction <= 1.0:
+            raise ValueError(f"speed_fraction must be in (0, 1], got {speed_fraction}")
+        with self._lock:
+            self._advance()
+            self._head_target[:] = self.robot.head.clamp(yaw, pitch)
+            self._head_speed = speed_fraction * self.robot.head.max_speed
+
+    def inject_fall(self) -> None:
+        """The robot falls now: walking stops at once and walk commands are ignored."""
+        with self._lock:
+            self._advance()
+            self._fallen = True
+            self._command[:] = 0.0
+            self._velocity[:] = 0.0
+
+    def stand_up(self) -> None:
+        """Recover from a fall (as ALRobotPosture.goToPosture would), where the robot lies."""
+        with self._lock:
+            self._advance()
+            self._fallen = False
+
+    # -- readings ------------------------------------------------------------------------------
+
+    def time(self) -> float:
+        """World time (s, the clock of ``clock``), at most one step behind it."""
+        with self._lock:
+            self._advance()
+            return self._time
+
+    def head_angles(self) -> Tuple[float, float]:
+        with self._lock:
+            self._advance()
+            return float(self._head[0]), float(self._head[1])
+
+    def odometry(self) -> Pose:
+        """Odometry pose (x, y, theta) in the odometry frame (the start pose is (0, 0, 0))."""
+        with self._lock:
+            self._advance()
+            return _pose_tuple(self._odom)
+
+    def true_pose(self) -> Pose:
+        """True robot pose (x, y, theta) in the world."""
+        with self._lock:
+            self._advance()
+            return _pose_tuple(self._pose)
+
+    def velocity(self) -> Tuple[float, float, float]:
+        """Current nominal walking velocity (v, vy, omega) after the lag."""
+        with self._lock:
+            self._advance()
+            return _pose_tuple(self._velocity)
+
+    def is_walking(self) -> bool:
+        with self._lock:
+            self._advance()
+            return self._walking()
+
+    def _walking(self) -> bool:
+        return bool(self._command.any()) or self._amplitude > 1e-3
+
+    def is_fallen(self) -> bool:
+        with self._lock:
+            self._advance()
+            return self._fallen
+
+    def battery(self) -> float:
+        with self._lock:
+            self._advance()
+            return self._battery
+
+    def state(self) -> RobotState:
+        """All the robot's readings at one instant."""
+        with self._lock:
+            self._advance()
+            return RobotState(
+                stamp=self._time,
+                odom=_pose_tuple(self._odom),
+                head_yaw=float(self._head[0]),
+                head_pitch=float(self._head[1]),
+                walking=self._walking(),
+                fallen=self._fallen,
+                battery=self._battery,
+            )
+
+    def camera_in_robot_nao(self) -> np.ndarray:
+        """Reported camera pose in the robot frame, NAO convention (ALMotion.getTransform("CameraTop", 2, True))."""
+        with self._lock:
+            self._advance()
+            return self._camera_nao(self._dyn.sway.reported_fraction)
+
+    def render(self) -> CameraFrame:
+        """A camera frame with the head angles, reported T_BC (optical) and odometry at its capture time."""
+        with self._lock:
+            self._advance()
+            stamp, head = self._time, self._head.copy()
+            T_BC = nao_to_optical(self._camera_nao(self._dyn.sway.reported_fraction))
+            T_WC = _planar(*self._pose) @ nao_to_optical(self._camera_nao(1.0))
+            odom = _pose_tuple(self._odom)
+            self._frames += 1
+            index = self._frames
+            self._last_render = (stamp, T_WC)
+        image = self.renderer.render(T_WC, index)
+        return CameraFrame(image=image, stamp=stamp, head_yaw=float(head[0]), head_pitch=float(head[1]), T_BC=T_BC, odom=odom)
+
+    def truth(self) -> dict:
+        """Ground truth, JSON-able: robot, odometry origin, camera at the last render, object, scenario."""
+        with self._lock:
+            self._advance()
+            sc = self.scenario
+            camera = None
+            if self._last_render is not None:
+                camera = {"stamp": self._last_render[0], "T_WC": self._last_render[1].tolist()}
+            return {
+                "scenario": self.scenario_name,
+                "seed": self.seed,
+                "stamp": self._time,
+                "robot_pose": list(_pose_tuple(self._pose)),
+                "odom_origin": list(self.start_pose),
+                "odom": list(_pose_tuple(self._odom)),
+                "speed_scale": [float(s) for s in self.speed_scale],
+                "fallen": self._fallen,
+                "camera": camera,
+                "object": {
+                    "kind": sc.kind,
+                    "centre": list(sc.position),
+                    "yaw": sc.yaw,
+                    "radius": sc.radius,
+                    "height": sc.height,
+                    "parts": [
+                        {"shape": p.shape, "centre": list(p.centre), "size": list(p.size), "yaw": p.yaw} for p in sc.parts
+                    ],
+                },
+            }
+
+
+def _pose_tuple(a: np.ndarray) -> Pose:
+    return float(a[0]), float(a[1]), float(a[2])
+
+
+def _check_finite(**values: float) -> None:
+    for name, value in values.items():
+        if not isinstance(value, numbers.Real) or isinstance(value, bool) or not math.isfinite(value):
+            raise ValueError(f"{name} must be a finite number, got {value!r}")
