@@ -24,7 +24,6 @@ from typing import List, Tuple
 
 import numpy as np
 
-from agent.camera import wrap_angle
 from nao_bridge.config import bounds
 
 
@@ -47,22 +46,33 @@ def bin_angles(n_bins: int) -> np.ndarray:
 
 
 def bins_seen(x: np.ndarray, cams: np.ndarray, params: CoverageParams, hfov: float) -> np.ndarray:
-    """Which bins of the cylinder x = (xo, yo, r) each camera (..., 3) sees: (..., N0) bool."""
-    cams = np.asarray(cams, dtype=float)
-    a = bin_angles(params.bins)
+    """Which bins of the cylinder x = (xo, yo, r) each camera (..., 3) sees: (..., N0) bool.
+
+    Both angle tests are done on dot products (hfov < pi): no arctan in the planner's inner loop.
+    """
+    return _seen_at(x, np.asarray(cams, dtype=float), bin_angles(params.bins), params, hfov)
+
+
+def _seen_at(x: np.ndarray, cams: np.ndarray, a: np.ndarray, params: CoverageParams, hfov: float) -> np.ndarray:
     nx, ny = np.cos(a), np.sin(a)
     vx = cams[..., 0, None] - (x[0] + x[2] * nx)  # c - q_i
     vy = cams[..., 1, None] - (x[1] + x[2] * ny)
     dist = np.hypot(vx, vy)
     facing = nx * vx + ny * vy >= dist * math.cos(params.facing_angle)
-    in_view = np.abs(wrap_angle(np.arctan2(-vy, -vx) - cams[..., 2, None])) <= 0.5 * hfov
+    axis_x, axis_y = np.cos(cams[..., 2, None]), np.sin(cams[..., 2, None])
+    in_view = -(axis_x * vx + axis_y * vy) >= dist * math.cos(0.5 * hfov)
     in_range = (dist >= params.distance_range[0]) & (dist <= params.distance_range[1])
     return facing & in_view & in_range
 
 
 def seen_count(x: np.ndarray, cams: np.ndarray, already: np.ndarray, params: CoverageParams, hfov: float) -> np.ndarray:
-    """N_v for camera sequences (..., D, 3) added to the bins ``already`` seen (N0,): (...,) int."""
-    return (bins_seen(x, cams, params, hfov).any(axis=-2) | already).sum(axis=-1)
+    """N_v for camera sequences (..., D, 3) added to the bins ``already`` seen (N0,): (...,) int.
+
+    Only the bins not seen yet are tested.
+    """
+    unseen = bin_angles(params.bins)[~np.asarray(already, dtype=bool)]
+    fresh = _seen_at(x, np.asarray(cams, dtype=float), unseen, params, hfov).any(axis=-2).sum(axis=-1)
+    return int(np.count_nonzero(already)) + fresh
 
 
 class Coverage:

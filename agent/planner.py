@@ -26,7 +26,9 @@ Optimizers (same cost, warm-started with the previous solution shifted by one st
 
 * ``nelder_mead``: scipy.optimize.minimize(method="Nelder-Mead"), one candidate per call, as the paper.
 * ``cem``: the cross-entropy method vectorized over K candidate sequences per iteration (one batched
-  rollout each): sample w ~ N(m, diag(s^2)) clipped to the limits, keep the E best, refit m, s.
+  rollout each): sample w = clip(m + s * (B z)), z ~ N(0, I) on a few knots and B their linear
+  interpolation over the D steps (smooth perturbations: fewer samples explore long horizons), keep
+  the E best, refit m, s; the batch also holds m itself and the best so far.
   The first batch also holds the warm start and the constant-turn sequences, so circling in either
   direction is always considered.
 
@@ -73,6 +75,7 @@ class CEMParams:
     iterations: int = field(metadata=bounds(1, 1000))
     initial_std: float = field(metadata=bounds(1e-4, 10.0))
     min_std: float = field(metadata=bounds(0.0, 10.0))
+    knots: int = field(metadata=bounds(2, 1000))  # perturbations are linear between this many knots
 
     def __post_init__(self) -> None:
         if self.elites >= self.samples:
@@ -291,15 +294,19 @@ class Planner:
 
     def _cem(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
         c, D, limit = self.params.cem, self.params.horizon, self.omega_max
+        knots = np.linspace(0.0, D - 1.0, min(D, c.knots))
+        basis = np.stack([np.interp(np.arange(D), knots, row) for row in np.eye(len(knots))])  # (knots, D)
         turns = np.linspace(-limit, limit, 5)[:, None] * np.ones(D)
         mean, std = warm.copy(), np.full(D, c.initial_std)
         best, best_cost, evaluations = warm, math.inf, 0
         for iteration in range(c.iterations):
-            samples = np.clip(mean + std * self._rng.standard_normal((c.samples, D)), -limit, limit)
+            noise = self._rng.standard_normal((c.samples, len(knots))) @ basis  # smooth in time
+            samples = np.clip(mean + std * noise, -limit, limit)
+            samples[0] = mean
             if iteration == 0:
-                samples[: 1 + len(turns)] = np.vstack([warm, turns])
+                samples[1 : 1 + len(turns)] = turns
             else:
-                samples[0] = best
+                samples[1] = best
             costs, _ = evaluate(samples)
             evaluations += len(samples)
             order = np.argsort(costs)

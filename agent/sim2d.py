@@ -59,7 +59,7 @@ class SimResult:
     estimates: np.ndarray  # (K, 3) x after the step's update (NaN before initialization)
     covariances: np.ndarray  # (K, 3, 3)
     commands: np.ndarray  # (K, 3) (v, vy, omega) sent
-    measured: np.ndarray  # (K,) bool
+    measurements: np.ndarray  # (K, 2) noisy (phi, delta), NaN where the object was not in view
     true_coverage: np.ndarray  # (K,) fraction of the true cylinder's bins seen so far
     reason: str
     first_estimate: Optional[np.ndarray] = None
@@ -79,6 +79,16 @@ class SimResult:
         """(centre error, |radius error|) of the last estimate, m."""
         x = self.estimates[-1]
         return float(np.hypot(*(x[:2] - self.truth[:2]))), float(abs(x[2] - self.truth[2]))
+
+
+def random_scenario(seed: int) -> Tuple[np.ndarray, np.ndarray]:
+    """A true cylinder near the origin (r in 5..20 cm) and a start 1.5..2.5 m away, roughly facing it."""
+    rng = np.random.default_rng(1000 + seed)
+    azimuth, distance = rng.uniform(-math.pi, math.pi), rng.uniform(1.5, 2.5)
+    heading = azimuth + math.pi + rng.uniform(-0.3, 0.3)
+    start = np.array([distance * math.cos(azimuth), distance * math.sin(azimuth), wrap_angle(heading)])
+    truth = np.array([*rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.2)])
+    return truth, start
 
 
 def circle_omega(
@@ -112,15 +122,15 @@ def simulate(
     coverage = Coverage(p.coverage, robot.hfov)
     true_seen = np.zeros(p.coverage.bins, dtype=bool)
     steps = max_steps if max_steps is not None else int(math.ceil(p.termination.time_limit / p.period))
-    hist = {k: [] for k in ("poses", "cameras", "estimates", "covariances", "commands", "measured", "coverage")}
+    hist = {k: [] for k in ("poses", "cameras", "estimates", "covariances", "commands", "measurements", "coverage")}
     first_estimate, terms, reason = None, [], "step_limit"
     for k in range(steps):
         ahead = pose[:2] + np.array([math.cos(pose[2]), math.sin(pose[2])])
         target = ekf.x[:2] if ekf.initialized else ahead
         cam = camera_poses(pose, target, robot.head_yaw_limits, robot.camera_offset)
         seen = bool(object_in_view(truth, cam, robot.hfov, p.max_range))
+        phi, delta = measure(truth, cam) + noise_std * rng.standard_normal(2) if seen else (np.nan, np.nan)
         if seen:
-            phi, delta = measure(truth, cam) + noise_std * rng.standard_normal(2)
             if ekf.initialized:
                 ekf.predict(p.period)
                 ekf.update(cam, float(phi), float(delta))
@@ -135,7 +145,7 @@ def simulate(
         hist["cameras"].append(cam)
         hist["estimates"].append(ekf.x.copy() if ekf.initialized else np.full(3, np.nan))
         hist["covariances"].append(ekf.P.copy() if ekf.initialized else np.full((3, 3), np.nan))
-        hist["measured"].append(seen)
+        hist["measurements"].append((phi, delta))
         hist["coverage"].append(true_seen.mean())
         if ekf.initialized:
             covered = coverage.fraction(ekf.x, p.termination.facing_margin)
@@ -162,7 +172,7 @@ def simulate(
         estimates=np.array(hist["estimates"]),
         covariances=np.array(hist["covariances"]),
         commands=np.array(hist["commands"]),
-        measured=np.array(hist["measured"]),
+        measurements=np.array(hist["measurements"]),
         true_coverage=np.array(hist["coverage"]),
         reason=reason,
         first_estimate=first_estimate,

@@ -78,3 +78,11 @@ def test_coverage_rejects_bad_input():
         cov.add([0.0, float("nan"), 0.0])
     with pytest.raises(ValueError, match="distance_range"):
         CoverageParams(bins=4, facing_angle=1.0, distance_range=(2.0, 1.0))
+
+
+def test_termination_margin_drops_bins_seen_only_at_the_facing_limit():
+    cov = Coverage(WIDE, hfov=1.0)
+    cov.add([1.0, 0.0, math.pi])  # the +-45 deg bins are seen at 49.3 deg from their normals
+    assert cov.fraction(UNIT) == 0.5
+    assert cov.fraction(UNIT, margin=math.radians(10.0)) == 0.5  # 50 deg limit: still seen
+    assert cov.fraction(UNIT, margin=math.radians(11.0)) == 0.0  # 49 deg limit: not any more

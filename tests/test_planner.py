@@ -23,7 +23,7 @@ from agent.planner import (
     uncertainty_cost,
     view_cost,
 )
-from agent.sim2d import SimRobot, circle_omega, simulate
+from agent.sim2d import SimRobot, circle_omega, random_scenario, simulate
 from nao_bridge.robot_model import load_robot_model
 
 ROBOT_MODEL = load_robot_model()
@@ -184,17 +184,9 @@ def test_speed_beyond_the_walk_limit_is_refused():
 # --- closed loop in simulation ----------------------------------------------------------------------
 
 
-def random_start(seed: int):
-    rng = np.random.default_rng(1000 + seed)
-    azimuth, distance = rng.uniform(-math.pi, math.pi), rng.uniform(1.5, 2.5)
-    start = np.array([distance * math.cos(azimuth), distance * math.sin(azimuth), azimuth + math.pi + rng.uniform(-0.3, 0.3)])
-    truth = np.array([*rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.2)])
-    return truth, start
-
-
 @pytest.mark.parametrize("seed", range(10))
 def test_active_loop_localizes_and_covers_within_limits(seed):
-    truth, start = random_start(seed)
+    truth, start = random_scenario(seed)
     result = simulate(truth, start, PARAMS, EKF, ROBOT, seed)
     assert result.reason.startswith("complete")
     centre_error, radius_error = result.final_errors()
@@ -210,7 +202,7 @@ def test_active_loop_localizes_and_covers_within_limits(seed):
 
 
 def test_simulation_is_deterministic_for_a_seed():
-    truth, start = random_start(3)
+    truth, start = random_scenario(3)
     a, b = (simulate(truth, start, PARAMS, EKF, ROBOT, seed=7, max_steps=15) for _ in range(2))
     np.testing.assert_array_equal(a.poses, b.poses)
     np.testing.assert_array_equal(a.estimates, b.estimates)
