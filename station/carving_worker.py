@@ -46,12 +46,17 @@ class CarvingWorker:
         self._queue.put((mask, T_WC, x.copy(), P.copy()))
 
     def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
-        """Stop the worker and carve the final model (None without keyframes or an estimate)."""
+        """Stop the worker and carve the final model (None without keyframes or an estimate, or when the
+        volume is refused: ``error`` says why)."""
         self._queue.put(None)
         self._thread.join(timeout)
         if x is None or not self.views:
             return None
-        return carve_views(self.views, x, P, self.params)
+        try:
+            return carve_views(self.views, x, P, self.params)
+        except ValueError as exc:  # e.g. the estimate is still too uncertain for a bounded volume
+            self.error = f"final carving failed: {exc}"
+            return None
 
     def _run(self) -> None:
         while True:
