@@ -53,8 +53,9 @@ COLOURS_BGR = {
 }
 
 
-def _shade(color: Sequence[int], normal: np.ndarray) -> Tuple[int, int, int]:
-    k = AMBIENT + (1.0 - AMBIENT) * max(0.0, float(np.dot(normal, LIGHT)))
+def _shade(color: Sequence[int], normal: np.ndarray, ambient: float = AMBIENT) -> Tuple[int, int, int]:
+    """Lambert: colour * (ambient + (1 - ambient) max(0, n . l))."""
+    k = ambient + (1.0 - ambient) * max(0.0, float(np.dot(normal, LIGHT)))
     return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
 
 
@@ -171,7 +172,7 @@ class _MarkerBoard:
         if not front:
             _fill_hull(image, view, self.board_W, (150, 150, 150))
             return
-        _fill_hull(image, view, self.board_W, _shade((235, 235, 235), self.landmark.normal))
+        _fill_hull(image, view, self.board_W, _shade((240, 240, 240), self.landmark.normal, ambient=0.85))
         corners_C = view.to_camera(self.corners_W)
         if (corners_C[:, 2] < NEAR).any() or (board_C[:, 2] < NEAR).all():
             return

@@ -32,7 +32,7 @@ import math
 import numbers
 import threading
 import time
-from typing import Callable, Optional, Tuple, Union
+from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -53,6 +53,21 @@ def _planar(x: float, y: float, theta: float) -> np.ndarray:
 def _rot_x(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0.0, 0.0, 0.0], [0.0, c, -s, 0.0], [0.0, s, c, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def head_angles_towards(robot: RobotModel, pose: Pose, target_W: Sequence[float], iterations: int = 8) -> Tuple[float, float]:
+    """Head (yaw, pitch) that put the world point ``target_W`` on the optical axis, clamped to the limits.
+
+    Fixed-point iteration on the target's direction in the optical frame (x right, y down, z forward):
+    yaw -= atan2(x, z), pitch += atan2(y, z), then ``robot.head.clamp``.
+    """
+    T_CW = np.linalg.inv(_planar(*pose))
+    target = T_CW @ np.append(np.asarray(target_W, dtype=float), 1.0)
+    yaw = pitch = 0.0
+    for _ in range(iterations):
+        x, y, z = (np.linalg.inv(robot.camera_in_robot(yaw, pitch)) @ target)[:3]
+        yaw, pitch = robot.head.clamp(yaw - math.atan2(x, z), pitch + math.atan2(y, z))
+    return yaw, pitch
 
 
 def _integrate(pose: np.ndarray, dx: float, dy: float, dtheta: float) -> None:
@@ -211,12 +226,25 @@ class SimWorld:
             self._fallen = True
             self._command[:] = 0.0
             self._velocity[:] = 0.0
+            self._amplitude = 0.0
 
     def stand_up(self) -> None:
         """Recover from a fall (as ALRobotPosture.goToPosture would), where the robot lies."""
         with self._lock:
             self._advance()
             self._fallen = False
+
+    def teleport(self, pose: Pose, head: Optional[Tuple[float, float]] = None) -> None:
+        """Test hook: put the robot at the true ``pose`` at rest (head at ``head``); odometry is untouched."""
+        _check_finite(x=pose[0], y=pose[1], theta=pose[2])
+        with self._lock:
+            self._advance()
+            self._pose[:] = pose
+            self._command[:] = 0.0
+            self._velocity[:] = 0.0
+            self._amplitude = 0.0
+            if head is not None:
+                self._head[:] = self._head_target[:] = self.robot.head.clamp(*head)
 
     # -- readings ------------------------------------------------------------------------------
 

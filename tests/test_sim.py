@@ -1,0 +1,389 @@
+"""The simulated NAO: camera pose vs ground truth in rendered frames, dynamics, landmarks, determinism."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from nao_bridge.landmark_map import load_landmark_map
+from nao_bridge.robot_model import load_robot_model
+from nao_bridge.sim import SimBackend, SimWorld, load_sim_config
+from nao_bridge.sim.world import head_angles_towards
+
+ROBOT = load_robot_model()
+CONFIG = load_sim_config()
+LANDMARKS = load_landmark_map(CONFIG.landmark_path)
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
+def planar(x: float, y: float, theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def project(points_W: np.ndarray, T_WC: np.ndarray, resolution: str) -> np.ndarray:
+    intr = ROBOT.camera.intrinsics(resolution)
+    T_CW = np.linalg.inv(T_WC)
+    rvec, _ = cv2.Rodrigues(T_CW[:3, :3])
+    uv, _ = cv2.projectPoints(np.asarray(points_W, float).reshape(-1, 1, 3), rvec, T_CW[:3, 3], intr.K, np.asarray(intr.dist))
+    return uv.reshape(-1, 2)
+
+
+def world_on_orbit(scenario: str, resolution: str, distance: float, azimuth: float, seed: int = 3, **kw) -> SimWorld:
+    """A world with the robot at rest on an orbit around the object, facing it, camera aimed at it."""
+    world = SimWorld(scenario, ROBOT, resolution, seed=seed, clock=FakeClock(), **kw)
+    ox, oy = world.scenario.position
+    pose = (ox + distance * math.cos(azimuth), oy + distance * math.sin(azimuth), azimuth + math.pi)
+    world.teleport(pose, head_angles_towards(ROBOT, pose, (ox, oy, 0.5 * world.scenario.height)))
+    return world
+
+
+def red_mask(image: np.ndarray) -> np.ndarray:
+    b, g, r = (image[..., i].astype(int) for i in range(3))
+    return (r > 90) & (r > 2 * g) & (r > 2 * b)
+
+
+# -- camera pose in rendered frames -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("resolution", ["qvga", "vga"])
+def test_detected_aruco_corners_match_projection_of_true_camera_pose(resolution):
+    world = world_on_orbit("can", resolution, 0.9, 2.2)
+    frame = world.render()
+    truth = world.truth()
+    T_WC = np.array(truth["camera"]["T_WC"])
+    assert truth["camera"]["stamp"] == frame.stamp
+    # standing still: the reported kinematics are the true camera pose
+    np.testing.assert_allclose(T_WC, planar(*truth["robot_pose"]) @ frame.T_BC, atol=1e-12)
+    np.testing.assert_allclose(frame.T_BC, ROBOT.camera_in_robot(frame.head_yaw, frame.head_pitch), atol=1e-12)
+
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
+    corners, ids, _ = detector.detectMarkers(frame.image)
+    assert ids is not None and len(ids) >= 2
+    by_id = {lm.id: lm for lm in LANDMARKS.of_kind("aruco")}
+    errors = []
+    for c, i in zip(corners, ids.ravel()):
+        expected = project(by_id[int(i)].aruco_corners(), T_WC, resolution)
+        errors.append(np.linalg.norm(c.reshape(4, 2) - expected, axis=1))
+    errors = np.concatenate(errors)
+    assert errors.max() < 1.0, errors
+    assert np.median(errors) < 0.4, errors
+
+
+@pytest.mark.parametrize("scenario", ["can", "remote", "figure"])
+def test_object_silhouette_matches_projection_of_its_parts(scenario):
+    world = world_on_orbit(scenario, "vga", 0.8, -1.0)
+    world.render()
+    world.render()  # the second frame: the truth refers to the last render
+    frame = world.render()
+    T_WC = np.array(world.truth()["camera"]["T_WC"])
+    mask = red_mask(frame.image)
+    expected = np.zeros(mask.shape, np.uint8)
+    for part in world.scenario.parts:
+        uv = project(part.world_points(world.scenario.position, world.scenario.yaw), T_WC, "vga")
+        cv2.fillConvexPoly(expected, np.round(cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2) * 16).astype(np.int32), 1, shift=4)
+    expected = expected.astype(bool)
+    iou = (mask & expected).sum() / (mask | expected).sum()
+    assert iou > 0.95, iou
+    cols, rows = np.nonzero(mask.any(axis=0))[0], np.nonzero(mask.any(axis=1))[0]
+    ecols, erows = np.nonzero(expected.any(axis=0))[0], np.nonzero(expected.any(axis=1))[0]
+    assert abs(cols[0] - ecols[0]) <= 1 and abs(cols[-1] - ecols[-1]) <= 1
+    assert abs(rows[0] - erows[0]) <= 1 and abs(rows[-1] - erows[-1]) <= 1
+
+
+def test_can_tangent_rays_give_true_bearing_and_width():
+    """DESIGN.md point 2 on a rendered can: extreme silhouette pixels back-project to the tangent planes."""
+    world = world_on_orbit("can", "vga", 1.0, 0.7)
+    frame = world.render()
+    T_WC = np.array(world.truth()["camera"]["T_WC"])
+    intr = ROBOT.camera.intrinsics("vga")
+    v, u = np.nonzero(red_mask(frame.image))
+    left, right = np.argmin(u), np.argmax(u)
+    extremes = [(u[left] - 0.5, v[left]), (u[right] + 0.5, v[right])]  # outer edges of the extreme pixels
+    rays = np.array([[(x - intr.cx) / intr.fx, (y - intr.cy) / intr.fy, 1.0] for x, y in extremes]) @ T_WC[:3, :3].T
+    a_left, a_right = np.arctan2(rays[:, 1], rays[:, 0])
+    c = T_WC[:2, 3]
+    o = np.asarray(world.scenario.position)
+    d = np.linalg.norm(o - c)
+    true_width = 2 * math.asin(world.scenario.radius / d)
+    true_bearing = math.atan2(o[1] - c[1], o[0] - c[0])
+    pixel = 1.0 / intr.fx
+    assert abs((a_left - a_right) - true_width) < 1.5 * pixel
+    assert abs(0.5 * (a_left + a_right) - true_bearing) < 0.75 * pixel
+
+
+def test_frames_render_at_both_resolutions_with_noise():
+    for resolution, shape in (("qvga", (240, 320, 3)), ("vga", (480, 640, 3))):
+        world = world_on_orbit("figure", resolution, 1.0, 0.0)
+        a, b = world.render().image, world.render().image
+        assert a.shape == shape and a.dtype == np.uint8
+        assert red_mask(a).sum() > 100
+        diff = a.astype(int) - b.astype(int)  # same pose: the difference is the image noise
+        assert 1.0 < diff.std() < 6.0
+
+
+# -- landmarks ---------------------------------------------------------------------------------
+
+
+def markers_in_view(T_WC: np.ndarray, min_side: float = 15.0, margin: float = 4.0) -> int:
+    """ArUco markers facing the camera, all corners ``margin`` px inside the QVGA image, sides >= ``min_side``."""
+    intr = ROBOT.camera.intrinsics("qvga")
+    count = 0
+    for lm in LANDMARKS.of_kind("aruco"):
+        corners = lm.aruco_corners()
+        if np.dot(lm.normal, T_WC[:3, 3] - corners.mean(axis=0)) <= 0:
+            continue  # seen from behind
+        depth = (corners - T_WC[:3, 3]) @ T_WC[:3, 2]
+        if (depth < 0.05).any():
+            continue
+        uv = project(corners, T_WC, "qvga")
+        inside = (uv >= margin).all() and (uv <= np.array([intr.width, intr.height]) - 1 - margin).all()
+        sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
+        count += bool(inside and sides.min() >= min_side)
+    return count
+
+
+def orbit_poses(scenario, n: int, rng: np.random.Generator):
+    """Robot poses on the 0.6-1.2 m orbit, heading within 0.5 rad of the object, head aimed at it."""
+    target = (*scenario.position, 0.5 * scenario.height)
+    for _ in range(n):
+        d, az, heading_error = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi), rng.uniform(-0.5, 0.5)
+        pose = (scenario.position[0] + d * math.cos(az), scenario.position[1] + d * math.sin(az), az + math.pi + heading_error)
+        yield pose, head_angles_towards(ROBOT, pose, target)
+
+
+def test_two_markers_in_view_from_anywhere_on_the_orbit():
+    rng = np.random.default_rng(0)
+    counts = [
+        markers_in_view(planar(*pose) @ ROBOT.camera_in_robot(*head))
+        for scenario in CONFIG.scenarios.values()
+        for pose, head in orbit_poses(scenario, 400, rng)
+    ]
+    assert min(counts) >= 2
+    assert np.mean(counts) > 3
+
+
+@pytest.mark.parametrize("scenario", ["can", "remote", "figure"])
+def test_two_markers_detected_in_qvga_renders_on_the_orbit(scenario):
+    """The same check on rendered, noisy frames: occlusion by the object, sampling and noise included."""
+    rng = np.random.default_rng(1)
+    world = SimWorld(scenario, ROBOT, "qvga", seed=2, clock=FakeClock())
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    detected = []
+    for pose, head in orbit_poses(world.scenario, 25, rng):
+        world.teleport(pose, head)
+        _, ids, _ = detector.detectMarkers(world.render().image)
+        detected.append(0 if ids is None else len(ids))
+    assert min(detected) >= 2, detected
+
+
+def test_landmark_map_has_no_red_and_unique_marker_ids():
+    from nao_bridge.sim.render import COLOURS_BGR
+
+    for lm in LANDMARKS.of_kind("color"):
+        b, g, r = COLOURS_BGR[lm.color]
+        assert not (r > 2 * g and r > 2 * b), lm.id
+    ids = [lm.id for lm in LANDMARKS.of_kind("aruco")]
+    assert len(ids) == len(set(ids)) >= 8 and max(ids) < 50
+
+
+# -- dynamics ----------------------------------------------------------------------------------
+
+
+def world_with_clock(seed: int = 0, scenario: str = "can"):
+    clock = FakeClock()
+    return SimWorld(scenario, ROBOT, "qvga", seed=seed, clock=clock), clock
+
+
+def test_walk_velocity_lags_the_command_and_is_clamped():
+    world, clock = world_with_clock()
+    tau = CONFIG.dynamics.velocity_time_constant
+    world.walk(1.0, -1.0, 2.0)  # beyond every limit
+    clock.advance(tau)
+    v, vy, omega = world.velocity()
+    limits = ROBOT.walk
+    lag = 1.0 - math.exp(-1.0)
+    assert v == pytest.approx(lag * limits.v_max, rel=0.02)
+    assert vy == pytest.approx(-lag * limits.vy_max, rel=0.02)
+    assert omega == pytest.approx(lag * limits.omega_max, rel=0.02)
+    clock.advance(10 * tau)
+    assert world.velocity() == pytest.approx((limits.v_max, -limits.vy_max, limits.omega_max), rel=1e-3)
+    world.stop_walking()
+    assert world.is_walking()  # still decelerating
+    clock.advance(20 * tau)
+    assert not world.is_walking()
+
+
+def test_omnidirectional_walk_moves_sideways_in_the_robot_frame():
+    world, clock = world_with_clock()
+    world.walk(0.0, 0.05, 0.0)
+    clock.advance(10.0)
+    x, y, theta = world.odometry()
+    assert abs(x) < 1e-9 and abs(theta) < 1e-9
+    assert y == pytest.approx(0.05 * (10.0 - CONFIG.dynamics.velocity_time_constant), rel=0.01)
+
+
+def odometry_error_after_walk(seed: int) -> tuple:
+    world, clock = world_with_clock(seed)
+    for _ in range(20):  # 20 s of walking a curve
+        world.walk(0.08, 0.0, 0.2)
+        clock.advance(1.0)
+    odom = np.array(world.odometry())
+    x0, y0, t0 = world.start_pose
+    x, y, t = world.true_pose()
+    c, s = math.cos(t0), math.sin(t0)
+    truth_in_odom = np.array([c * (x - x0) + s * (y - y0), -s * (x - x0) + c * (y - y0), math.remainder(t - t0, 2 * math.pi)])
+    return odom, truth_in_odom
+
+
+def test_odometry_drifts_from_truth_by_a_bounded_seeded_amount():
+    odom, truth = odometry_error_after_walk(seed=5)
+    walked = 0.08 * 20.0
+    error = np.hypot(*(odom[:2] - truth[:2]))
+    sigma = max(CONFIG.dynamics.speed_scale_sigma) * walked + CONFIG.dynamics.slip_translation * math.sqrt(walked)
+    assert 0.0 < error < 4 * sigma + 0.2 * walked * max(CONFIG.dynamics.speed_scale_sigma)
+    assert 0.0 < abs(odom[2] - truth[2]) < 0.3
+    again, truth_again = odometry_error_after_walk(seed=5)
+    np.testing.assert_array_equal(odom, again)
+    np.testing.assert_array_equal(truth, truth_again)
+    other, truth_other = odometry_error_after_walk(seed=6)
+    np.testing.assert_array_equal(odom, other)  # odometry is the nominal walk: same commands, same odometry
+    assert not np.allclose(truth, truth_other)  # the truth is not
+
+
+def test_odometry_starts_at_zero_and_truth_near_the_object():
+    for seed in range(5):
+        world, _ = world_with_clock(seed)
+        assert world.odometry() == (0.0, 0.0, 0.0)
+        x, y, theta = world.true_pose()
+        ox, oy = world.scenario.position
+        assert 1.0 <= math.hypot(x - ox, y - oy) <= 1.5
+        facing_error = math.remainder(math.atan2(oy - y, ox - x) - theta, 2 * math.pi)
+        assert abs(facing_error) < 0.6
+    assert (ox, oy) != (0.0, 0.0)
+
+
+def test_sway_moves_the_camera_while_walking_and_the_reports_see_most_of_it():
+    world, clock = world_with_clock()
+    world.walk(0.1, 0.0, 0.0)
+    deviations, unreported = [], []
+    for _ in range(40):
+        clock.advance(0.05)
+        frame = world.render()
+        T_WC = np.array(world.truth()["camera"]["T_WC"])
+        nominal = planar(*world.true_pose()) @ ROBOT.camera_in_robot(0.0, 0.0)
+        reported = planar(*world.true_pose()) @ frame.T_BC
+        deviations.append(np.linalg.norm(T_WC[:3, 3] - nominal[:3, 3]))
+        unreported.append(np.linalg.norm(T_WC[:3, 3] - reported[:3, 3]))
+    sway = CONFIG.dynamics.sway
+    assert 0.5 * sway.lateral < max(deviations) < 2 * (sway.lateral + sway.roll * 0.5)
+    assert max(unreported) == pytest.approx((1 - sway.reported_fraction) * max(deviations), rel=0.2)
+
+
+def test_head_moves_at_the_commanded_fraction_of_max_speed_and_is_clamped():
+    world, clock = world_with_clock()
+    world.set_head(1.0, 0.0, 0.1)
+    clock.advance(1.0)
+    yaw, _ = world.head_angles()
+    assert yaw == pytest.approx(0.1 * ROBOT.head.max_speed * 1.0, abs=0.01)
+    clock.advance(5.0)
+    assert world.head_angles()[0] == pytest.approx(1.0)
+    world.set_head(1.5, 1.0, 1.0)  # pitch beyond the yaw-dependent limit
+    clock.advance(2.0)
+    yaw, pitch = world.head_angles()
+    assert (yaw, pitch) == pytest.approx(ROBOT.head.clamp(1.5, 1.0))
+    assert pitch < ROBOT.head.pitch_range(0.0)[1]
+
+
+def test_fall_stops_walking_and_refuses_walks_until_standing_up():
+    world, clock = world_with_clock()
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(1.0)
+    world.inject_fall()
+    assert world.is_fallen() and not world.is_walking()
+    world.walk(0.1, 0.0, 0.0)
+    before = world.true_pose()
+    clock.advance(1.0)
+    assert world.true_pose() == before and world.state().fallen
+    frame = world.render()
+    assert np.array(world.truth()["camera"]["T_WC"])[2, 3] == pytest.approx(CONFIG.dynamics.fallen_camera_height, abs=0.02)
+    assert frame.T_BC[2, 2] < -0.99  # lying face down: the camera looks at the floor
+    world.stand_up()
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(1.0)
+    assert world.true_pose() != before
+
+
+def test_battery_drains_faster_while_walking():
+    world, clock = world_with_clock()
+    start = world.battery()
+    clock.advance(100.0)
+    idle = start - world.battery()
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(100.0)
+    walking = start - idle - world.battery()
+    assert idle == pytest.approx(100 * CONFIG.dynamics.battery_drain_idle, rel=0.01)
+    assert walking > 1.5 * idle
+
+
+def test_bad_commands_raise_clear_errors():
+    world, _ = world_with_clock()
+    with pytest.raises(ValueError, match="v must be a finite number"):
+        world.walk(float("nan"), 0.0, 0.0)
+    with pytest.raises(ValueError, match="speed_fraction"):
+        world.set_head(0.0, 0.0, 0.0)
+    with pytest.raises(KeyError, match="unknown scenario 'teapot'"):
+        SimWorld("teapot", ROBOT)
+
+
+def test_a_run_is_deterministic_for_a_seed():
+    def run(seed):
+        world, clock = world_with_clock(seed, "figure")
+        world.set_head(0.3, 0.2, 0.2)
+        world.walk(0.05, 0.02, 0.1)
+        clock.advance(3.0)
+        frame = world.render()
+        return frame.image, world.truth()
+
+    (img_a, truth_a), (img_b, truth_b), (img_c, truth_c) = run(7), run(7), run(8)
+    np.testing.assert_array_equal(img_a, img_b)
+    assert truth_a == truth_b
+    assert truth_a["robot_pose"] != truth_c["robot_pose"]
+
+
+# -- backend -----------------------------------------------------------------------------------
+
+
+def test_sim_backend_paces_frames_and_reports_state_and_truth():
+    world = SimWorld("can", ROBOT, "qvga", seed=1)
+    backend = SimBackend(world, fps=50.0)
+    backend.start()
+    frames = [backend.grab_frame(timeout=1.0) for _ in range(4)]
+    assert all(f is not None for f in frames)
+    stamps = np.array([f.stamp for f in frames])
+    assert (np.diff(stamps) >= 0.02 - CONFIG.dynamics.timestep).all()
+    backend.walk(0.1, 0.0, 0.0)
+    assert backend.read_state().walking
+    truth = backend.ground_truth()
+    json.dumps(truth)
+    assert truth["object"]["kind"] == "cylinder" and truth["object"]["radius"] == pytest.approx(0.055)
+    backend.close()
+    assert backend.grab_frame(timeout=1.0) is None
+    assert world.state().odom is not None and not backend.read_state().fallen
+    backend.close()  # idempotent
