@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from nao_bridge.config import ConfigError
+from nao_bridge.config import CONFIG_DIR, ConfigError
+from nao_bridge.landmark_map import load_landmark_map
 from station.config import SECTIONS, StationParams, load_station_config
 
 
@@ -14,7 +15,7 @@ def test_defaults_compose_every_section():
         assert getattr(config, name) is not None
     assert config.station == StationParams()  # YAML defaults equal the dataclass defaults
     assert config.station.control_period < 0.3  # walk commands must beat the bridge's deadman
-    assert len(config.landmarks.landmarks) == 12
+    assert config.landmarks == load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml")
 
 
 def test_override_merges_into_several_sections(tmp_path):
