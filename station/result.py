@@ -56,9 +56,9 @@ def log_figures(log_path: Union[str, Path]) -> Dict[str, Any]:
     return {"path_length": path_length, "coverage": coverage, "keyframes": keyframes, "truth": truth}
 
 
-def build_result(summary, log_path: Path, files: Dict[str, str], resolution: str) -> Dict[str, Any]:
-    """The result.json document of a finished run (``summary``: station.run.RunSummary)."""
-    figures = log_figures(log_path)
+def build_result(summary, log_path: Path, files: Dict[str, Any], resolution: str) -> Dict[str, Any]:
+    """The result.json document of a run (``summary``: station.run.RunSummary); the log may be missing."""
+    figures = log_figures(log_path) if log_path.exists() else {"path_length": 0.0, "coverage": None, "keyframes": 0, "truth": None}
     x, P = summary.x, summary.P
     estimate: Optional[Dict[str, Any]] = None
     if x is not None:

@@ -1,0 +1,59 @@
+"""``station carve LOG.mcap -o model.ply [--resolution M] [--tolerance K]``: offline carving.
+
+The keyframes the run chose (``/agent/keyframe``: frame sequence number and T_WC) are carved
+again from the logged JPEGs: silhouette by the run's perception parameters, volume around the
+run's final object estimate, the given voxel edge and tolerance (defaults: the run's). With the
+run's parameters this reproduces the run's model (carving does not depend on the order of views).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Dict, List, Optional, Union
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from tqdm import tqdm
+
+from agent.carving import VoxelCarver
+from agent.perception import extract_silhouette
+from nao_bridge.protocol import FrameMeta, decode
+from station.carving_worker import View, carve_views
+from station.mcap_log import read_log
+from station.pilot import camera_from_info
+from station.replay import LogError, load_setup
+from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME
+
+
+def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, tolerance: Optional[int] = None,
+              progress: bool = True) -> VoxelCarver:
+    config, info = load_setup(log_path)
+    params = config.carving if tolerance is None else dataclasses.replace(config.carving, tolerance=tolerance)
+    camera = camera_from_info(info)
+    wanted: Dict[int, np.ndarray] = {}
+    estimate = None
+    for message in read_log(log_path, topics={KEYFRAME, EKF}):
+        payload = message.json()
+        if message.topic == KEYFRAME:
+            wanted[payload["seq"]] = np.asarray(payload["T_WC"], dtype=float).reshape(4, 4)
+        elif payload["x"] is not None:
+            estimate = payload
+    if not wanted or estimate is None:
+        raise LogError(f"{log_path}: no keyframes or no object estimate: nothing to carve")
+    views: List[View] = []
+    seq: Optional[int] = None
+    with tqdm(total=len(wanted), desc="silhouettes", unit="view", disable=not progress) as bar:
+        for message in read_log(log_path, topics={FRAME_META, FRAME_IMAGE}):
+            if message.topic == FRAME_META:
+                seq = decode(message.data, FrameMeta).seq
+            elif seq in wanted:
+                jpeg = message.proto(CompressedImage).data
+                image = cv2.imdecode(np.frombuffer(jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
+                mask = extract_silhouette(image, config.perception)
+                if mask is not None:
+                    views.append((mask, camera, wanted.pop(seq)))
+                bar.update()
+    x, P = np.asarray(estimate["x"]), np.asarray(estimate["P"])
+    return carve_views(views, x, P, params, pitch=resolution)
