@@ -1,20 +1,63 @@
-"""Zenoh sessions for the bridge and the station: one place that turns options into a zenoh.Config.
+"""Zenoh sessions for the bridge, the station and viewers: one place that turns options into a zenoh.Config.
 
-Practice (DESIGN.md, checked with eclipse-zenoh 1.10): peer mode on both sides, multicast scouting
-off, explicit listen (bridge) and connect (station) endpoints, and a short link lease so that a
-frozen peer is noticed within about a second (its liveliness tokens then disappear).
-``insert_json5`` takes JSON5 literals, hence ``json.dumps`` on every value.
+Practice (DESIGN.md, checked with eclipse-zenoh 1.10): peer mode on every side, multicast and gossip
+scouting off, explicit listen (bridge) and connect (station, viewer) endpoints, and a short link
+lease (1.5 s, 4 keep-alives per lease) so that a frozen peer is noticed within the lease (its
+liveliness tokens then disappear). ``insert_json5`` takes JSON5 literals, hence ``json.dumps``.
+
+Plain mode (``tcp/`` endpoints, no authentication) is the default. Secure mode, for a shared lab
+network (docs/security.md), adds up to three layers:
+
+* TLS with mutual authentication: every link is ``tls/``; both ends present a certificate signed by
+  the lab CA (``tools/make_certs.py``) and reject any other; ``transport/link/protocols`` admits
+  TLS only, so no plain link can be opened or accepted.
+* Optional user/password authentication (``transport/auth/usrpwd``): this side's credentials and
+  the ``user:password`` dictionary of the peers it accepts. Zenoh checks them on the listening
+  side only: the bridge authenticates the station and viewers, not the other way round.
+* An access-control policy (``access_control``, deny by default) from ``config/zenoh/acl_<role>.yaml``,
+  which needs TLS. Key expressions there are written with ``{robot}`` for the robot's name. A
+  subject lists the identities a peer must prove, all of them: ``cert_common_names`` (from its
+  certificate) and, on the bridge, ``usernames``; without user/password the ``usernames`` are
+  dropped, so the certificate alone identifies a peer.
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from typing import Any, Tuple
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple, Union
 
+import yaml
 import zenoh
 
-from .config import bounds
+from .config import CONFIG_DIR, ConfigError, bounds
+from .protocol.keys import RobotKeys
+
+ROLES = ("bridge", "station", "viewer")
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM files for mutual TLS: the lab CA, this side's certificate and its private key."""
+
+    root_ca: str
+    certificate: str
+    private_key: str
+    verify_name_on_connect: bool = True  # the listener's certificate must name the host connected to
+
+
+@dataclass(frozen=True)
+class UserPassword:
+    """This side's credentials, and the file of ``user:password`` lines of the peers it accepts."""
+
+    user: str
+    password: str
+    dictionary_file: Optional[str] = None
+
+    def __post_init__(self) -> None:
+        if not self.user or not self.password:
+            raise ValueError("user/password authentication needs a non-empty user and password")
 
 
 @dataclass(frozen=True)
@@ -23,6 +66,68 @@ class TransportConfig:
     connect: Tuple[str, ...] = ()  # e.g. ("tcp/nao.local:7447",)
     lease_ms: int = field(default=1500, metadata=bounds(200, 60000))
     keep_alive: int = field(default=4, metadata=bounds(1, 100))  # keep-alives per lease
+    tls: Optional[TlsFiles] = None
+    usrpwd: Optional[UserPassword] = None
+    acl_file: Optional[str] = None  # access-control policy (YAML, top-level key access_control)
+    robot: str = "nao"  # substituted for {robot} in the policy's key expressions
+
+    def __post_init__(self) -> None:
+        RobotKeys(self.robot)  # validates the name
+        if self.tls is not None:
+            plain = [e for e in (*self.listen, *self.connect) if not e.startswith("tls/")]
+            if plain:
+                raise ValueError(f"endpoint {plain[0]!r}: with TLS every endpoint must be tls/<host>:<port>")
+        if self.acl_file is not None and self.tls is None:
+            raise ValueError("an access-control policy needs TLS: certificates tell the peers apart")
+
+    @classmethod
+    def secure(cls, role: str, cert_dir: Union[str, Path], *, robot: str = "nao", listen: Tuple[str, ...] = (),
+               connect: Tuple[str, ...] = (), usrpwd: Optional[UserPassword] = None,
+               acl_file: Union[str, Path, None] = None, lease_ms: int = 1500) -> "TransportConfig":
+        """Mutual TLS with ``cert_dir/{ca,<role>}.pem`` and ``<role>.key``, plus the role's policy.
+
+        ``tcp/`` endpoints are turned into ``tls/`` endpoints on the same address, so a CLI can
+        build its usual endpoints and pass ``--secure`` through. The policy defaults to
+        ``config/zenoh/acl_<role>.yaml``.
+        """
+        if role not in ROLES:
+            raise ValueError(f"role {role!r}: expected one of {list(ROLES)}")
+        cert_dir = Path(cert_dir)
+        tls = TlsFiles(str(cert_dir / "ca.pem"), str(cert_dir / f"{role}.pem"), str(cert_dir / f"{role}.key"))
+        policy = Path(acl_file) if acl_file is not None else CONFIG_DIR / "zenoh" / f"acl_{role}.yaml"
+        return cls(listen=tuple(map(_over_tls, listen)), connect=tuple(map(_over_tls, connect)), lease_ms=lease_ms,
+                   tls=tls, usrpwd=usrpwd, acl_file=str(policy), robot=robot)
+
+
+def _over_tls(endpoint: str) -> str:
+    return "tls/" + endpoint[len("tcp/"):] if endpoint.startswith("tcp/") else endpoint
+
+
+def _readable(path: str, what: str) -> str:
+    if not Path(path).is_file():
+        raise ConfigError(f"{path}: {what}: no such file (make one with `python -m tools.make_certs`)")
+    return str(Path(path).resolve())
+
+
+def access_control(options: TransportConfig) -> Dict[str, Any]:
+    """The ``access_control`` section from the policy file, for this robot and these identities."""
+    assert options.acl_file is not None
+    path = options.acl_file
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict) or set(data) != {"access_control"} or not isinstance(data["access_control"], dict):
+        raise ConfigError(f"{path}: expected a single top-level mapping 'access_control'")
+    section = json.loads(json.dumps(data["access_control"]).replace("{robot}", options.robot))
+    subjects = section.get("subjects") or []
+    if not all(isinstance(s, dict) for s in subjects):
+        raise ConfigError(f"{path}: access_control.subjects: expected a list of mappings")
+    if options.usrpwd is None:  # no user name is proven: the certificate alone identifies a peer
+        section["subjects"] = [{k: v for k, v in s.items() if k != "usernames"} for s in subjects]
+    return section
 
 
 def zenoh_config(options: TransportConfig) -> zenoh.Config:
@@ -36,11 +141,42 @@ def zenoh_config(options: TransportConfig) -> zenoh.Config:
         "transport/link/tx/lease": options.lease_ms,
         "transport/link/tx/keep_alive": options.keep_alive,
     }
+    if options.tls is not None:
+        tls = options.tls
+        ca = _readable(tls.root_ca, "CA certificate")
+        cert = _readable(tls.certificate, "certificate")
+        key = _readable(tls.private_key, "private key")
+        settings.update({
+            "transport/link/protocols": ["tls"],
+            "transport/link/tls/root_ca_certificate": ca,
+            "transport/link/tls/listen_certificate": cert,
+            "transport/link/tls/listen_private_key": key,
+            "transport/link/tls/connect_certificate": cert,
+            "transport/link/tls/connect_private_key": key,
+            "transport/link/tls/enable_mtls": True,
+            "transport/link/tls/verify_name_on_connect": tls.verify_name_on_connect,
+        })
+    if options.usrpwd is not None:
+        settings["transport/auth/usrpwd/user"] = options.usrpwd.user
+        settings["transport/auth/usrpwd/password"] = options.usrpwd.password
+        if options.usrpwd.dictionary_file is not None:
+            settings["transport/auth/usrpwd/dictionary_file"] = _readable(options.usrpwd.dictionary_file,
+                                                                         "user/password dictionary")
+    if options.acl_file is not None:
+        settings["access_control"] = access_control(options)
     for key, value in settings.items():
-        config.insert_json5(key, json.dumps(value))
+        try:
+            config.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:
+            source = options.acl_file if key == "access_control" else "transport options"
+            raise ConfigError(f"{source}: {key}: rejected by zenoh: {exc}") from None
     return config
 
 
 def open_session(options: TransportConfig) -> zenoh.Session:
-    """Open a peer session with the given endpoints (raises zenoh.ZError with zenoh's reason)."""
+    """Open a peer session with the given endpoints and security.
+
+    Raises ConfigError for a missing certificate, key, dictionary or bad policy, and zenoh.ZError
+    with zenoh's reason when the session cannot open (e.g. the listen port is taken).
+    """
     return zenoh.open(zenoh_config(options))
