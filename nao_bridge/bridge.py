@@ -200,6 +200,11 @@ class Bridge:
             _quietly(self._session.close, "session close")
         log.info("bridge closed (rejected %s, ignored %s)", dict(self.rejected), dict(self.ignored))
 
+    @property
+    def station_alive(self) -> bool:
+        with self._lock:
+            return self._station_alive
+
     def __enter__(self) -> "Bridge":
         self.start()
         return self
