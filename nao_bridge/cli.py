@@ -3,6 +3,9 @@
     nao-bridge --naoqi tcp://HOST:9559 [--listen tcp/[::]:7447] [--name nao] [--config FILE ...]
     nao-bridge --sim [--scenario can] [--seed 0] [--listen ...] [--name nao] [--config FILE ...]
 
+``--secure CERT_DIR`` switches the session to mutual TLS with the bridge's access policy
+(``TransportConfig.secure``, docs/security.md).
+
 Exit codes: 0 after a clean stop (SIGINT, SIGTERM), 1 when the robot or the network cannot be
 reached, 2 on a configuration or usage error (one line, never a traceback).
 """
@@ -21,6 +24,7 @@ from .backend import RobotBackend
 from .bridge import Bridge, BridgeParams
 from .config import CONFIG_DIR, ConfigError, load, main_error
 from .robot_model import RobotModel, load_robot_model
+from .transport import TransportConfig
 
 log = logging.getLogger("nao_bridge")
 
@@ -34,6 +38,7 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0, help="simulator seed (with --sim)")
     parser.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint(s), e.g. tcp/[::]:7447")
     parser.add_argument("--name", help="robot name: keys live under nao/<name>/")
+    parser.add_argument("--secure", metavar="CERT_DIR", help="mutual TLS and the bridge's access policy (docs/security.md)")
     parser.add_argument("--config", action="append", default=[], metavar="FILE", help="bridge config override(s) (top-level key bridge), merged in order")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     return parser.parse_args(argv)
@@ -41,11 +46,18 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
 
 def load_params(args: argparse.Namespace) -> BridgeParams:
     params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml", *args.config], section="bridge")
-    if args.listen:
-        params = dataclasses.replace(params, transport=dataclasses.replace(params.transport, listen=tuple(args.listen)))
-    if args.name:
-        params = dataclasses.replace(params, name=args.name)
-    return params
+    name = args.name or params.name
+    listen = tuple(args.listen) if args.listen else params.transport.listen
+    try:
+        if args.secure:
+            transport = TransportConfig.secure(
+                "bridge", args.secure, robot=name, listen=listen, lease_ms=params.transport.lease_ms
+            )
+        else:
+            transport = dataclasses.replace(params.transport, listen=listen, robot=name)
+    except ValueError as exc:
+        raise ConfigError(f"transport: {exc}") from None
+    return dataclasses.replace(params, name=name, transport=transport)
 
 
 def load_model(params: BridgeParams) -> RobotModel:
@@ -87,6 +99,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     bridge = Bridge(backend, model, params, "sim" if args.sim else "naoqi")
     try:
         bridge.start()
+    except ConfigError as exc:  # e.g. a missing certificate file
+        bridge.close()
+        return main_error(exc)
     except Exception as exc:  # noqa: BLE001 - unreachable robot, busy port: one line, exit 1
         log.error("cannot start: %s", str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
         bridge.close()

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import socket
 import subprocess
 import sys
 import threading
@@ -42,24 +41,11 @@ from nao_bridge.robot_model import load_robot_model
 from nao_bridge.sim import SimBackend, SimWorld
 from nao_bridge.standin import StandIn
 from nao_bridge.transport import TransportConfig, open_session
+from zenoh_peers import free_port, wait_until
 
 MODEL = load_robot_model()
+WAIT = 3.0  # s, generous: only a broken bridge waits this long
 TRANSPORT_SLACK = 0.03  # s: Zenoh and libqi on a loaded loopback, on top of deadman + one period
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def wait_for(predicate: Callable[[], bool], timeout: float = 3.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 def bridge_params(port: int, **changes) -> BridgeParams:
@@ -102,12 +88,12 @@ class Station:
         self.head_pub.put(encode(HeadCommand(seq=self.seq, yaw=yaw, pitch=pitch, speed=speed)))
 
     def state(self) -> State:
-        assert wait_for(lambda: bool(self.states)), "no state received"
+        assert wait_until(lambda: bool(self.states), WAIT), "no state received"
         return self.states[-1]
 
     def fresh_state(self) -> State:
         count = len(self.states)
-        assert wait_for(lambda: len(self.states) > count + 1), "no fresh state"
+        assert wait_until(lambda: len(self.states) > count + 1, WAIT), "no fresh state"
         return self.states[-1]
 
     def close(self) -> None:
@@ -129,7 +115,7 @@ def rig(standin):
     bridge = Bridge(backend, MODEL, bridge_params(port), "naoqi")
     bridge.start()
     station = Station(port)
-    assert wait_for(lambda: bridge.station_alive), "the bridge never saw the station"
+    assert wait_until(lambda: bridge.station_alive, WAIT), "the bridge never saw the station"
     station.state()
     yield bridge, station, standin
     station.close()
@@ -186,7 +172,7 @@ def test_malformed_commands_are_rejected_counted_and_never_move_the_robot(rig):
     expected["bad_value"] += 1
     station.head_pub.put(encode(WalkCommand(seq=1, vx=0.05, vy=0.0, omega=0.0, ttl=1.0)))  # walk on the head key
     expected["type"] += 1
-    assert wait_for(lambda: station.state().rejected == expected), station.state().rejected
+    assert wait_until(lambda: station.state().rejected == expected, WAIT), station.state().rejected
     time.sleep(0.1)
     assert moves(standin) == [] and standin.calls_to("ALMotion.setAngles") == []
     assert station.state().walking is False
@@ -195,17 +181,17 @@ def test_malformed_commands_are_rejected_counted_and_never_move_the_robot(rig):
 def test_valid_walk_moves_with_clamped_velocities(rig):
     bridge, station, standin = rig
     station.walk(0.5, vy=-0.3, omega=2.0)  # valid on the wire, beyond the robot's limits
-    assert wait_for(lambda: bool(moves(standin)))
+    assert wait_until(lambda: bool(moves(standin)), WAIT)
     assert moves(standin)[0].args == pytest.approx((MODEL.walk.v_max, -MODEL.walk.vy_max, MODEL.walk.omega_max))
     station.walk(-0.5, omega=-2.0)
-    assert wait_for(lambda: len(moves(standin)) == 2)
+    assert wait_until(lambda: len(moves(standin)) == 2, WAIT)
     assert moves(standin)[1].args == pytest.approx((MODEL.walk.v_min, 0.0, -MODEL.walk.omega_max))
 
 
 def test_head_commands_are_clamped_to_the_yaw_dependent_limits(rig):
     bridge, station, standin = rig
     station.head(3.0, 1.0, speed=1.0)
-    assert wait_for(lambda: bool(standin.calls_to("ALMotion.setAngles")))
+    assert wait_until(lambda: bool(standin.calls_to("ALMotion.setAngles")), WAIT)
     names, (yaw, pitch), speed = standin.calls_to("ALMotion.setAngles")[0].args
     assert list(names) == ["HeadYaw", "HeadPitch"]
     assert yaw == pytest.approx(MODEL.head.yaw[1])
@@ -217,7 +203,7 @@ def test_deadman_stops_after_the_deadman_time_and_within_one_period(rig):
     bridge, station, standin = rig
     last_sent = walk_for(station, 0.5, ttl=5.0)
     assert moves(standin), "the robot never walked"
-    assert wait_for(lambda: any(c.time > last_sent for c in stops(standin)), timeout=2.0)
+    assert wait_until(lambda: any(c.time > last_sent for c in stops(standin)), timeout=2.0)
     stop = next(c for c in stops(standin) if c.time > last_sent)
     delay = stop.time - last_sent
     params = bridge.params
@@ -229,7 +215,7 @@ def test_deadman_stops_after_the_deadman_time_and_within_one_period(rig):
 def test_short_ttl_stops_before_the_deadman(rig):
     bridge, station, standin = rig
     sent = station.walk(0.05, ttl=0.1)
-    assert wait_for(lambda: any(c.time > sent for c in stops(standin)), timeout=2.0)
+    assert wait_until(lambda: any(c.time > sent for c in stops(standin)), timeout=2.0)
     delay = next(c for c in stops(standin) if c.time > sent).time - sent
     assert 0.1 - 0.005 <= delay <= 0.1 + bridge.params.control_period_s + TRANSPORT_SLACK, delay
 
@@ -238,29 +224,29 @@ def test_stale_commands_are_ignored(rig):
     bridge, station, standin = rig
     station.seq = 10
     station.walk(0.05, ttl=5.0)
-    assert wait_for(lambda: len(moves(standin)) == 1)
+    assert wait_until(lambda: len(moves(standin)) == 1, WAIT)
     station.seq = 4  # older sequence number
     station.walk(0.09, ttl=5.0)
     station.seq = 10  # same sequence number again
     station.walk(0.09, ttl=5.0)
     station.seq = 20
     station.walk(0.09, ttl=0.0)  # expired on arrival
-    assert wait_for(lambda: station.state().ignored == {"stale_seq": 2, "expired": 1}), station.state().ignored
+    assert wait_until(lambda: station.state().ignored == {"stale_seq": 2, "expired": 1}, WAIT), station.state().ignored
     assert [c.args[0] for c in moves(standin)] == [pytest.approx(0.05)]
 
 
 def test_fall_stops_reports_fallen_and_refuses_walking(rig):
     bridge, station, standin = rig
     station.walk(0.05, ttl=5.0)
-    assert wait_for(lambda: bool(moves(standin)))
+    assert wait_until(lambda: bool(moves(standin)), WAIT)
     fall_time = time.time()
     standin.fall()
-    assert wait_for(lambda: any(c.time >= fall_time for c in stops(standin)), timeout=1.0)
-    assert wait_for(lambda: station.state().fallen and station.state().watchdog == "fallen")
+    assert wait_until(lambda: any(c.time >= fall_time for c in stops(standin)), timeout=1.0)
+    assert wait_until(lambda: station.state().fallen and station.state().watchdog == "fallen", WAIT)
     count = len(moves(standin))
     for _ in range(3):
         station.walk(0.05, ttl=5.0)
-    assert wait_for(lambda: station.state().ignored.get("fallen") == 3)
+    assert wait_until(lambda: station.state().ignored.get("fallen") == 3, WAIT)
     assert len(moves(standin)) == count
 
 
@@ -270,27 +256,27 @@ def test_station_liveliness_lost_stops_before_the_deadman(standin):
     bridge = Bridge(NaoqiBackend(standin.url, MODEL, params.naoqi, "qvga", 15.0), MODEL, params, "naoqi")
     with bridge:
         station = Station(port)
-        assert wait_for(lambda: bridge.station_alive)
+        assert wait_until(lambda: bridge.station_alive, WAIT)
         station.walk(0.05, ttl=5.0)
-        assert wait_for(lambda: bool(moves(standin)))
+        assert wait_until(lambda: bool(moves(standin)), WAIT)
         lost = time.time()
         station.token.undeclare()
-        assert wait_for(lambda: any(c.time > lost for c in stops(standin)), timeout=1.0)
+        assert wait_until(lambda: any(c.time > lost for c in stops(standin)), timeout=1.0)
         assert next(c for c in stops(standin) if c.time > lost).time - lost < 0.5 < params.deadman_s
         station.walk(0.05, ttl=5.0)  # without a station token, walking is refused
-        assert wait_for(lambda: station.state().ignored.get("no_station") == 1)
+        assert wait_until(lambda: station.state().ignored.get("no_station") == 1, WAIT)
         station.close()
 
 
 def test_close_stops_unsubscribes_and_rests(rig):
     bridge, station, standin = rig
     station.walk(0.05, ttl=5.0)
-    assert wait_for(lambda: bool(moves(standin)))
+    assert wait_until(lambda: bool(moves(standin)), WAIT)
     closed = time.time()
     bridge.close()
     names = [c.name for c in standin.calls if c.time >= closed]
     assert names.index("ALMotion.stopMove") < names.index("ALVideoDevice.unsubscribe") < names.index("ALMotion.rest")
-    assert wait_for(lambda: station.bridge_alive[-1:] == [False]), "the bridge's liveliness token is still there"
+    assert wait_until(lambda: station.bridge_alive[-1:] == [False], WAIT), "the bridge's liveliness token is still there"
 
 
 def test_info_queryable_describes_the_robot(rig):
@@ -353,7 +339,7 @@ def check_frame_matches_truth(frame, world: SimWorld) -> None:
 
 
 def newest_frame_after(station: Station, moment: float):
-    assert wait_for(lambda: any(f.meta.stamp > moment for f in station.frames), timeout=3.0)
+    assert wait_until(lambda: any(f.meta.stamp > moment for f in station.frames), timeout=3.0)
     return station.frames[-1]
 
 
@@ -364,7 +350,7 @@ def test_standin_frames_carry_the_true_camera_pose_on_the_bridge_clock(rig):
     world.render = lambda: capture_stamps.append(render()) or capture_stamps[-1]
     yaw, pitch = look_at_marker(world)
     station.head(yaw, pitch, speed=0.5)
-    assert wait_for(lambda: np.allclose(world.head_angles(), (yaw, pitch), atol=1e-6), timeout=3.0)
+    assert wait_until(lambda: np.allclose(world.head_angles(), (yaw, pitch), atol=1e-6), timeout=3.0)
     settled = time.time()
     frame = newest_frame_after(station, settled + 0.1)
     check_frame_matches_truth(frame, world)
@@ -380,14 +366,14 @@ def test_sim_frames_and_truth_match(tmp_path):
     world = SimWorld("can", MODEL, resolution="qvga", seed=4)
     with Bridge(SimBackend(world, fps=15.0), MODEL, bridge_params(port), "sim") as bridge:
         station = Station(port)
-        assert wait_for(lambda: bridge.station_alive)
+        assert wait_until(lambda: bridge.station_alive, WAIT)
         yaw, pitch = look_at_marker(world)
         station.head(yaw, pitch, speed=0.5)
-        assert wait_for(lambda: np.allclose(world.head_angles(), (yaw, pitch), atol=1e-6), timeout=3.0)
+        assert wait_until(lambda: np.allclose(world.head_angles(), (yaw, pitch), atol=1e-6), timeout=3.0)
         frame = newest_frame_after(station, time.time() + 0.1)
         check_frame_matches_truth(frame, world)
         assert abs(frame.meta.stamp - world.truth()["camera"]["stamp"]) < 0.2
-        assert wait_for(lambda: bool(station.truths))
+        assert wait_until(lambda: bool(station.truths), WAIT)
         truth = station.truths[-1]
         assert truth.robot_pose == pytest.approx(world.true_pose(), abs=1e-9)
         assert truth.object.radius == pytest.approx(0.055, abs=1e-3)
@@ -402,7 +388,7 @@ def test_cli_sim_runs_and_exits_cleanly_on_sigterm():
     )
     try:
         station = Station(port, name="clitest")
-        assert wait_for(lambda: bool(station.frames) and bool(station.states), timeout=15.0)
+        assert wait_until(lambda: bool(station.frames) and bool(station.states), timeout=15.0)
         station.close()
     finally:
         proc.terminate()
