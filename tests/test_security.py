@@ -1,0 +1,301 @@
+"""Zenoh security on loopback: mutual TLS, user/password and the deny-by-default access control.
+
+Real sessions with certificates made by ``tools/make_certs.py``. Who may do what is measured by
+counting what arrives: N walk commands from an unauthenticated peer, from a peer whose certificate
+comes from another CA, and from an authenticated viewer without command rights must all be lost
+(0 of N), while the station's N arrive (the control that shows the rig would have seen them).
+First at the Zenoh level (a subscriber stands in for the bridge), then with the real bridge on the
+NAOqi stand-in, where nothing may reach ``ALMotion.move``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import List
+
+import pytest
+import zenoh
+
+from nao_bridge.bridge import Bridge, BridgeParams
+from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
+from nao_bridge.naoqi_backend import NaoqiBackend
+from nao_bridge.protocol import RobotKeys, WalkCommand, encode
+from nao_bridge.robot_model import load_robot_model
+from nao_bridge.sim import SimWorld
+from nao_bridge.standin import StandIn
+from nao_bridge.transport import TransportConfig, UserPassword, access_control, open_session
+from tests.zenoh_peers import free_port, lab_certificates, wait_until
+from tools.make_certs import CertError, make_lab_certificates
+from tools.make_certs import main as make_certs_main
+
+N = 40  # commands per intruder
+KEYS = RobotKeys("nao")
+WALK = encode(WalkCommand(seq=10**6, vx=0.1, vy=0.0, omega=0.2, ttl=1.0))
+SETTLE = 1.0  # s for a refused link to be refused (loopback handshakes take milliseconds)
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory) -> Path:
+    return lab_certificates(tmp_path_factory.mktemp("lab"))
+
+
+@pytest.fixture(scope="module")
+def rogue_certs(tmp_path_factory) -> Path:
+    """Certificates with the same common names, from a CA the robot does not trust."""
+    return lab_certificates(tmp_path_factory.mktemp("rogue"))
+
+
+class FakeBridge:
+    """The bridge's Zenoh surface (command subscribers, info, state, liveliness) with counters."""
+
+    def __init__(self, options: TransportConfig):
+        self.session = open_session(options)
+        self.walks: List[bytes] = []
+        self.heads: List[bytes] = []
+        self.entities = [
+            self.session.declare_subscriber(KEYS.cmd_walk, lambda s: self.walks.append(s.payload.to_bytes())),
+            self.session.declare_subscriber(KEYS.cmd_head, lambda s: self.heads.append(s.payload.to_bytes())),
+            self.session.declare_queryable(KEYS.info, lambda q: q.reply(KEYS.info, b"info")),
+            self.session.liveliness().declare_token(KEYS.alive),
+        ]
+
+    def peers(self) -> int:
+        return len(list(self.session.info.peers_zid()))
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def bridge_options(certs: Path, port: int, **changes) -> TransportConfig:
+    options = TransportConfig.secure("bridge", certs, listen=(f"tcp/127.0.0.1:{port}",))
+    return dataclasses.replace(options, **changes)
+
+
+def peer(role: str, certs: Path, port: int, **kwargs) -> zenoh.Session:
+    return open_session(TransportConfig.secure(role, certs, connect=(f"tcp/localhost:{port}",), **kwargs))
+
+
+def send_walks(session: zenoh.Session, count: int = N) -> None:
+    for _ in range(count):
+        session.put(KEYS.cmd_walk, WALK)
+        session.put(KEYS.cmd_head, WALK)
+        time.sleep(0.002)
+
+
+@pytest.fixture
+def fake_bridge(certs):
+    port = free_port()
+    bridge = FakeBridge(bridge_options(certs, port))
+    yield bridge, port
+    bridge.close()
+
+
+def test_station_commands_arrive_and_it_sees_state_info_and_liveliness(certs, fake_bridge):
+    bridge, port = fake_bridge
+    station = peer("station", certs, port)
+    try:
+        states, alive = [], []
+        station.declare_subscriber(KEYS.state, lambda s: states.append(1))
+        station.liveliness().declare_subscriber(KEYS.alive, lambda s: alive.append(s.kind), history=True)
+        assert wait_until(lambda: bridge.peers() == 1 and alive, 5.0), "the station never joined"
+        assert wait_until(lambda: (bridge.session.put(KEYS.state, b"s"), bool(states))[1], 5.0)
+        replies = [r.ok.payload.to_bytes() for r in station.get(KEYS.info, timeout=2.0) if r.ok is not None]
+        assert replies == [b"info"]
+        send_walks(station)
+        assert wait_until(lambda: len(bridge.walks) == N and len(bridge.heads) == N, 5.0)
+    finally:
+        station.close()
+
+
+@pytest.mark.parametrize("intruder", ["plain tcp, no certificate", "certificate from another CA"])
+def test_unauthenticated_peers_get_no_link_and_no_command_through(certs, rogue_certs, fake_bridge, intruder):
+    bridge, port = fake_bridge
+    if intruder.startswith("plain"):
+        session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+    else:
+        session = peer("station", rogue_certs, port)
+    try:
+        time.sleep(SETTLE)
+        send_walks(session)
+        time.sleep(0.5)
+        assert bridge.peers() == 0
+        assert (len(bridge.walks), len(bridge.heads)) == (0, 0)
+    finally:
+        session.close()
+
+
+def test_viewer_watches_but_its_commands_are_dropped(certs, fake_bridge):
+    bridge, port = fake_bridge
+    viewer = peer("viewer", certs, port)
+    try:
+        states = []
+        viewer.declare_subscriber(KEYS.state, lambda s: states.append(1))
+        token = viewer.liveliness().declare_token(KEYS.station_alive)  # pretends to be the station
+        seen_station = []
+        bridge.session.liveliness().declare_subscriber(KEYS.station_alive, lambda s: seen_station.append(1),
+                                                       history=True)
+        assert wait_until(lambda: (bridge.session.put(KEYS.state, b"s"), bool(states))[1], 5.0), "viewer sees no state"
+        assert [r.ok.payload.to_bytes() for r in viewer.get(KEYS.info, timeout=2.0) if r.ok is not None] == [b"info"]
+        send_walks(viewer)
+        time.sleep(0.5)
+        assert (len(bridge.walks), len(bridge.heads), len(seen_station)) == (0, 0, 0)
+        token.undeclare()
+    finally:
+        viewer.close()
+
+
+def test_without_the_policy_the_same_viewer_would_command(certs):
+    """Control: mutual TLS alone authenticates but does not authorize; the policy is what drops the viewer."""
+    port = free_port()
+    bridge = FakeBridge(bridge_options(certs, port, acl_file=None))
+    viewer_options = TransportConfig.secure("viewer", certs, connect=(f"tcp/localhost:{port}",))
+    viewer = open_session(dataclasses.replace(viewer_options, acl_file=None))
+    try:
+        assert wait_until(lambda: bridge.peers() == 1, 5.0)
+        assert wait_until(lambda: (viewer.put(KEYS.cmd_walk, WALK), len(bridge.walks) > 0)[1], 5.0)
+    finally:
+        viewer.close()
+        bridge.close()
+
+
+def test_user_password_is_required_on_top_of_the_certificate(certs, tmp_path):
+    users = tmp_path / "bridge_users.txt"
+    users.write_text("station:correct-horse\nviewer:battery-staple\n")
+    port = free_port()
+    bridge = FakeBridge(bridge_options(certs, port, usrpwd=UserPassword("bridge", "unused-here", str(users))))
+    try:
+        for credentials in (None, UserPassword("station", "wrong"), UserPassword("viewer", "battery-staple")):
+            session = peer("station", certs, port, usrpwd=credentials)  # the viewer's password, station's cert
+            time.sleep(SETTLE)
+            send_walks(session, 10)
+            time.sleep(0.3)
+            session.close()
+            assert len(bridge.walks) == 0, f"commands went through with {credentials}"
+        station = peer("station", certs, port, usrpwd=UserPassword("station", "correct-horse"))
+        assert wait_until(lambda: (station.put(KEYS.cmd_walk, WALK), len(bridge.walks) > 0)[1], 5.0)
+        station.close()
+    finally:
+        bridge.close()
+
+
+# -- the real bridge on the NAOqi stand-in --------------------------------------------------------
+
+
+def test_real_bridge_moves_only_for_the_station(certs, rogue_certs):
+    model = load_robot_model()
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
+    port = free_port()
+    params = dataclasses.replace(params, resolution="qvga", transport=bridge_options(certs, port))
+    with StandIn(SimWorld("can", model, resolution="qvga", seed=1)) as standin:
+        bridge = Bridge(NaoqiBackend(standin.url, model, params.naoqi, "qvga", 15.0), model, params, "naoqi")
+        bridge.start()
+        sessions = []
+        try:
+            station = peer("station", certs, port)
+            sessions.append(station)
+            token = station.liveliness().declare_token(KEYS.station_alive)
+            assert wait_until(lambda: bridge.station_alive, 5.0), "the bridge never saw the station"
+            intruders = [open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))),
+                         peer("station", rogue_certs, port), peer("viewer", certs, port)]
+            sessions += intruders
+            time.sleep(SETTLE)
+            for seq, intruder in enumerate(intruders):
+                for i in range(N):
+                    command = WalkCommand(seq=10**6 * (seq + 1) + i, vx=0.1, vy=0.0, omega=0.2, ttl=1.0)
+                    intruder.put(KEYS.cmd_walk, encode(command))
+                    time.sleep(0.005)
+            time.sleep(0.5)
+            assert standin.calls_to("ALMotion.move") == []
+            assert sum(bridge.rejected.values()) + sum(bridge.ignored.values()) == 0  # dropped before decoding
+            for i in range(1, 6):  # control: the station's commands do move the robot
+                station.put(KEYS.cmd_walk, encode(WalkCommand(seq=i, vx=0.1, vy=0.0, omega=0.0, ttl=1.0)))
+                time.sleep(0.02)
+            assert wait_until(lambda: len(standin.calls_to("ALMotion.move")) > 0, 5.0)
+            token.undeclare()
+        finally:
+            for session in sessions:
+                session.close()
+            bridge.close()
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+
+def test_secure_factory_uses_tls_endpoints_and_the_role_policy(certs):
+    options = TransportConfig.secure("station", certs, robot="alpha", connect=("tcp/nao.local:7447",))
+    assert options.connect == ("tls/nao.local:7447",)
+    assert options.tls.certificate == str(certs / "station.pem")
+    assert options.acl_file == str(CONFIG_DIR / "zenoh" / "acl_station.yaml")
+    section = access_control(options)
+    text = str(section)
+    assert "{robot}" not in text and "nao/alpha/cmd/walk" in text
+    assert section["default_permission"] == "deny" and section["enabled"] is True
+
+
+@pytest.mark.parametrize("role", ["bridge", "station", "viewer"])
+def test_policies_allow_commands_only_from_the_station(role):
+    options = TransportConfig.secure(role, "unused", robot="nao")
+    section = access_control(options)
+    rules = {rule["id"]: rule for rule in section["rules"]}
+    command_puts = [
+        (policy["subjects"], rules[rule_id]["flows"])
+        for policy in section["policies"] for rule_id in policy["rules"]
+        if "put" in rules[rule_id]["messages"] and any("/cmd/" in k for k in rules[rule_id]["key_exprs"])
+    ]
+    expected = {"bridge": [(["station"], ["ingress"])], "station": [(["bridge"], ["egress"])], "viewer": []}
+    assert command_puts == expected[role]
+    assert all(rule["permission"] == "allow" and "*" not in "".join(rule["key_exprs"]) for rule in rules.values())
+
+
+def test_usernames_are_dropped_without_user_password(certs):
+    plain = access_control(TransportConfig.secure("bridge", certs))
+    with_users = access_control(TransportConfig.secure("bridge", certs, usrpwd=UserPassword("bridge", "pw")))
+    assert all("usernames" not in s for s in plain["subjects"])
+    assert {s["id"]: s["usernames"] for s in with_users["subjects"]} == {"station": ["station"], "viewer": ["viewer"]}
+
+
+def test_transport_section_loads_from_yaml(tmp_path):
+    path = tmp_path / "transport.yaml"
+    path.write_text("transport:\n  listen: ['tls/[::]:7447']\n  tls: {root_ca: c/ca.pem, certificate: c/bridge.pem,"
+                    " private_key: c/bridge.key}\n  acl_file: config/zenoh/acl_bridge.yaml\n")
+    options = load(TransportConfig, [path], section="transport")
+    assert options.tls.private_key == "c/bridge.key" and options.lease_ms == 1500
+
+
+@pytest.mark.parametrize("mapping, message", [
+    ({"listen": ["tcp/[::]:7447"], "tls": {"root_ca": "a", "certificate": "b", "private_key": "c"}},
+     "every endpoint must be tls/"),
+    ({"acl_file": "config/zenoh/acl_bridge.yaml"}, "needs TLS"),
+    ({"robot": "nao/*"}, "robot name"),
+    ({"usrpwd": {"user": "", "password": "x"}}, "non-empty user"),
+    ({"lease_ms": 100}, "lease_ms"),
+])
+def test_bad_transport_options_are_clear_errors(mapping, message):
+    with pytest.raises(ConfigError, match=message):
+        from_mapping(TransportConfig, mapping, source="bridge.yaml")
+
+
+def test_missing_certificate_names_the_file(certs, tmp_path):
+    (tmp_path / "ca.pem").write_bytes((certs / "ca.pem").read_bytes())
+    with pytest.raises(ConfigError, match=r"station\.pem: certificate: no such file"):
+        open_session(TransportConfig.secure("station", tmp_path, connect=("tcp/localhost:1",)))
+
+
+def test_bad_policy_file_is_a_config_error(certs, tmp_path):
+    policy = tmp_path / "acl.yaml"
+    for text, message in (("access_control: [1", "not valid YAML"), ("rules: []", "single top-level mapping"),
+                          ("access_control: {enabled: true, rules: 3}", "rejected by zenoh")):
+        policy.write_text(text)
+        with pytest.raises(ConfigError, match=message):
+            open_session(TransportConfig.secure("bridge", certs, acl_file=policy))
+
+
+def test_make_certs_refuses_to_overwrite_without_force(certs, capsys):
+    before = (certs / "station.pem").read_bytes()
+    with pytest.raises(CertError, match="--force"):
+        make_lab_certificates(certs)
+    assert make_certs_main(["--out", str(certs)]) == 1
+    assert "--force" in capsys.readouterr().err
+    assert (certs / "station.pem").read_bytes() == before
