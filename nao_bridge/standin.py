@@ -57,17 +57,6 @@ class _Recorder:
             return list(self.calls)
 
 
-def bgr_to_yuyv(image: np.ndarray) -> np.ndarray:
-    """BGR (H x W x 3) -> packed YUV422 YUYV (H x W x 2), chroma averaged over pixel pairs."""
-    yuv = cv2.cvtColor(image, cv2.COLOR_BGR2YUV).astype(np.float32)
-    chroma = 0.5 * (yuv[:, 0::2, 1:] + yuv[:, 1::2, 1:])  # (U, V) per pair
-    packed = np.empty(image.shape[:2] + (2,), np.float32)
-    packed[:, :, 0] = yuv[:, :, 0]
-    packed[:, 0::2, 1] = chroma[:, :, 0]
-    packed[:, 1::2, 1] = chroma[:, :, 1]
-    return np.clip(np.rint(packed), 0, 255).astype(np.uint8)
-
-
 def _joint_names(names: Union[str, Sequence[str]]) -> List[str]:
     names = [names] if isinstance(names, str) else list(names)
     if names in (["Head"], []):
@@ -164,12 +153,13 @@ class ALVideoDevice:
             now = time.time()
             if sub["image"] is None or now >= sub["due"]:
                 sub["image"] = self._image(sub["color_space"])
-                sub["due"] = max(sub["due"] + sub["period"], now)
+                due = sub["due"] + sub["period"]
+                sub["due"] = due if due >= now else now + sub["period"]  # keep the cadence unless behind
             return sub["image"]
 
     def _image(self, color_space: int) -> list:
         frame = self._world.render()
-        pixels = frame.image if color_space == COLOR_SPACE_IDS["bgr"] else bgr_to_yuyv(frame.image)
+        pixels = frame.image if color_space == COLOR_SPACE_IDS["bgr"] else cv2.cvtColor(frame.image, cv2.COLOR_BGR2YUV_YUYV)
         height, width, layers = pixels.shape
         robot_stamp = frame.stamp + self._clock_offset
         seconds = math.floor(robot_stamp)
