@@ -35,7 +35,10 @@ relinearize at the iterate x_i, H_i = H(x_i), K_i = P- H_i^T (H_i P- H_i^T + R)^
 x_i+1 = x- + K_i (z - h(x_i) - H_i (x- - x_i)), and P+ uses the last K_i, H_i. From the first
 views the range is as uncertain as the radius prior (100 %), and a single linearization there
 overshoots and can lock the gate out for good; a few iterations remove that (docs/estimation.md).
-The gate uses the NIS at the prior mean.
+The gate tests the minimum of the MAP cost, which is the NIS of the last linearization,
+r_i^T S_i^-1 r_i with r_i = z - h(x_i) - H_i (x- - x_i) and S_i = H_i P- H_i^T + R (the plain NIS
+when iterations = 1): with a wide prior, the NIS linearized at the prior mean is inflated by the
+curvature of h and would reject good first views of an object whose size differs from the prior.
 
 Without a width (``delta is None``) only the bearing row is used (dof 1). An update whose camera
 lies inside the estimated cylinder (d <= r), or whose inputs are not finite, is rejected with a
@@ -62,6 +65,7 @@ batched over K with closed-form 2x2 inverses (:func:`rollout_covariance`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,14 +128,16 @@ class UpdateResult:
 
 @dataclass
 class FilterStats:
-    """Counters the station logs: observations accepted, rejected by the gate, rejected as invalid."""
+    """Counters the station logs: observations accepted, rejected by the gate, rejected as invalid,
+    and rejections since the last accepted one (a long streak means the estimate is lost)."""
 
     accepted: int = 0
     gated: int = 0
     invalid: int = 0
+    rejected_in_a_row: int = 0
 
     def as_dict(self) -> dict:
-        return {"accepted": self.accepted, "gated": self.gated, "invalid": self.invalid}
+        return dataclasses.asdict(self)
 
 
 def _geometry(x: np.ndarray, cams: np.ndarray) -> Tuple[np.ndarray, ...]:
@@ -160,13 +166,15 @@ def measure(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -
 def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
     """H = d(phi, delta)/d(xo, yo, r) for state ``x`` and cameras ``cams`` (..., 3) -> (..., 2, 3).
 
-    Inside the cylinder (d <= r) the asin width row is not defined; it is set to zero there.
+    Inside the cylinder (d <= r) the asin width row is not defined, at its centre (d = 0) neither is
+    the bearing row; they are set to zero there.
     """
     dx, dy, d2, r = _geometry(x, cams)
     dx, dy, d2, r = np.broadcast_arrays(dx, dy, d2, r)
     H = np.zeros(dx.shape + (2, 3))
-    H[..., 0, 0] = -dy / d2
-    H[..., 0, 1] = dx / d2
+    bearing_d2 = np.where(d2 > 0.0, d2, np.inf)  # a camera at the centre: no bearing row
+    H[..., 0, 0] = -dy / bearing_d2
+    H[..., 0, 1] = dx / bearing_d2
     if width_model == "asin":
         slack = d2 - r * r
         outside = slack > 0.0
@@ -175,11 +183,10 @@ def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthMode
         H[..., 1, 1] = -2.0 * r * dy / denom
         H[..., 1, 2] = 2.0 * d2 / denom
     else:
-        d = np.sqrt(d2)
         denom = d2 + r * r
-        H[..., 1, 0] = -r * dx / (d * denom)
-        H[..., 1, 1] = -r * dy / (d * denom)
-        H[..., 1, 2] = d / denom
+        H[..., 1, 0] = -r * dx / (np.sqrt(bearing_d2) * denom)
+        H[..., 1, 1] = -r * dy / (np.sqrt(bearing_d2) * denom)
+        H[..., 1, 2] = np.sqrt(d2) / denom
     return H
 
 
@@ -289,6 +296,7 @@ class ObjectEKF:
 
     def _reject_invalid(self, reason: str, dof: int) -> UpdateResult:
         self.stats.invalid += 1
+        self.stats.rejected_in_a_row += 1
         return UpdateResult(False, None, dof, None, reason)
 
     def initialize(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
@@ -335,28 +343,31 @@ class ObjectEKF:
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
         R = self._R[:dof, :dof]
         nu = self._innovation(self.x, cam, z)
-        H = self._jacobian(self.x, cam, dof)
-        S = H @ self.P @ H.T + R
-        nis = float(nu @ np.linalg.solve(S, nu))
+        # Iterated EKF: Gauss-Newton on the MAP cost; one iteration is the plain EKF update.
+        step = None
+        x_lin = self.x
+        for _ in range(self.params.iterations):
+            H = self._jacobian(x_lin, cam, dof)
+            S = H @ self.P @ H.T + R
+            residual = self._innovation(x_lin, cam, z) - H @ (self.x - x_lin)
+            gain = self.P @ H.T @ np.linalg.inv(S)
+            x_next = self.x + gain @ residual
+            if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
+                break
+            step = (x_next, H, S, residual, gain)
+            if np.max(np.abs(x_next - x_lin)) < 1e-10:
+                break
+            x_lin = x_next
+        if step is None:
+            return self._reject_invalid("update would put the camera inside the object or is degenerate", dof)
+        x, H, S, residual, gain = step
+        nis = float(residual @ np.linalg.solve(S, residual))  # = min MAP cost; the plain NIS when iterations = 1
         if not math.isfinite(nis):
             return self._reject_invalid("innovation covariance is degenerate", dof)
         if nis > self._gate[dof]:
             self.stats.gated += 1
+            self.stats.rejected_in_a_row += 1
             return UpdateResult(False, nis, dof, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
-        # Iterated EKF (Gauss-Newton on the MAP cost); one iteration is the plain EKF update.
-        x = self.x
-        for _ in range(self.params.iterations):
-            H = self._jacobian(x, cam, dof)
-            gain = self.P @ H.T @ np.linalg.inv(H @ self.P @ H.T + R)
-            x_next = self.x + gain @ (self._innovation(x, cam, z) - H @ (self.x - x))
-            if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
-                break
-            converged = np.max(np.abs(x_next - x)) < 1e-9
-            x = x_next
-            if converged:
-                break
-        if x is self.x:
-            return self._reject_invalid("update would put the camera inside the object", dof)
         A = np.eye(3) - gain @ H
         P = A @ self.P @ A.T + gain @ R @ gain.T
         if not np.all(np.isfinite(P)):
@@ -365,6 +376,7 @@ class ObjectEKF:
         x[2] = max(x[2], self.params.min_radius)
         self.x, self.P = x, 0.5 * (P + P.T)
         self.stats.accepted += 1
+        self.stats.rejected_in_a_row = 0
         return UpdateResult(True, nis, dof, nu, "ok")
 
     def _outside(self, x: np.ndarray, cam: np.ndarray) -> bool:

@@ -1,0 +1,275 @@
+"""Object EKF against ground truth: Jacobians, image geometry, Monte-Carlo consistency, accuracy,
+gating, observability, the planner's batched rollout, bad inputs and the paper's width slip."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import chi2
+
+from agent.camera import CameraModel, bearing_width_from_pixels, camera_in_world, optical_axis_heading, wrap_angle
+from agent.ekf import (
+    NOMINAL_R,
+    ObjectEKF,
+    load_ekf_params,
+    measure,
+    measurement_jacobian,
+    rollout_covariance,
+)
+from nao_bridge.config import ConfigError
+from nao_bridge.robot_model import load_robot_model
+from tools.demo_estimation import circling_cameras, simulate
+
+PARAMS = load_ekf_params()
+coord = st.floats(-3.0, 3.0)
+
+
+def numeric_jacobian(x: np.ndarray, cam: np.ndarray, model: str, eps: float = 1e-6) -> np.ndarray:
+    H = np.zeros((2, 3))
+    for i in range(3):
+        step = np.zeros(3)
+        step[i] = eps
+        hi, lo = measure(x + step, cam, model), measure(x - step, cam, model)
+        H[0, i] = wrap_angle(hi[0] - lo[0]) / (2 * eps)
+        H[1, i] = (hi[1] - lo[1]) / (2 * eps)
+    return H
+
+
+@settings(max_examples=200, deadline=None)
+@given(coord, coord, st.floats(0.01, 0.5), coord, coord, st.floats(-math.pi, math.pi), st.sampled_from(["asin", "paper_atan"]))
+def test_jacobian_equals_finite_differences(xo, yo, r, cx, cy, psi, model):
+    x, cam = np.array([xo, yo, r]), np.array([cx, cy, psi])
+    d = math.hypot(xo - cx, yo - cy)
+    if d < 1.2 * r + 0.05:  # finite differences need a margin from the tangent singularity d = r
+        return
+    np.testing.assert_allclose(measurement_jacobian(x, cam, model), numeric_jacobian(x, cam, model), rtol=1e-5, atol=1e-6)
+
+
+def test_vectorized_functions_match_single_calls():
+    rng = np.random.default_rng(3)
+    x = np.array([0.3, -0.2, 0.1])
+    cams = np.concatenate([rng.uniform(-2, 2, (4, 5, 2)), rng.uniform(-3, 3, (4, 5, 1))], axis=-1)
+    z, H = measure(x, cams), measurement_jacobian(x, cams)
+    assert z.shape == (4, 5, 2) and H.shape == (4, 5, 2, 3)
+    for idx in np.ndindex(4, 5):
+        np.testing.assert_allclose(z[idx], measure(x, cams[idx]))
+        np.testing.assert_allclose(H[idx], measurement_jacobian(x, cams[idx]))
+
+
+@pytest.mark.parametrize("dist", [np.zeros(5), np.array([-0.08, 0.02, 0.0, 0.0, 0.0])])
+@pytest.mark.parametrize("yaw, pitch", [(0.0, 0.0), (0.4, 0.35), (-0.6, -0.3)])
+def test_bearing_and_width_from_image_equal_analytic(dist, yaw, pitch):
+    """Tangent points of a vertical cylinder, projected by a pitched camera, give exactly (phi, delta)."""
+    robot = load_robot_model()
+    intr = robot.camera.intrinsics("vga")
+    camera = CameraModel(intr.K, dist, intr.width, intr.height)
+    T_WC = camera_in_world((0.3, -0.2, 0.5), robot.camera_in_robot(yaw, pitch))
+    cam = np.array([T_WC[0, 3], T_WC[1, 3], optical_axis_heading(T_WC)])
+    # Object 1.3 m ahead along the optical-axis heading, slightly off-centre.
+    aim = cam[2] + 0.12
+    x = np.array([cam[0] + 1.3 * math.cos(aim), cam[1] + 1.3 * math.sin(aim), 0.09])
+    d = math.hypot(x[0] - cam[0], x[1] - cam[1])
+    alpha, leg = math.asin(x[2] / d), math.sqrt(d * d - x[2] ** 2)
+    centre_az = math.atan2(x[1] - cam[1], x[0] - cam[0])
+    # Tangent points at different heights: the azimuths do not depend on the height.
+    heights = np.linspace(0.05, 0.45, 9)
+    left = [[cam[0] + leg * math.cos(centre_az + alpha), cam[1] + leg * math.sin(centre_az + alpha), h] for h in heights]
+    right = [[cam[0] + leg * math.cos(centre_az - alpha), cam[1] + leg * math.sin(centre_az - alpha), h] for h in heights]
+    uv_l, front_l = camera.project_world(np.array(left), T_WC)
+    uv_r, front_r = camera.project_world(np.array(right), T_WC)
+    inside = lambda uv: (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
+    ok = front_l & front_r & inside(uv_l) & inside(uv_r)
+    assert ok.sum() >= 2, "the test geometry must put tangent points in the image"
+    expected = measure(x, cam)
+    for i in np.flatnonzero(ok):
+        _, phi, delta = bearing_width_from_pixels(camera, uv_l[i], uv_r[i][None], T_WC)
+        assert abs(math.degrees(wrap_angle(phi - expected[0]))) < 0.01
+        assert abs(math.degrees(delta - expected[1])) < 0.01
+
+
+def circling_runs(params, n_runs: int, n_views: int, seed: int, radius_std: float = 0.0, outliers: float = 0.0):
+    """Runs of a camera circling a random object at 0.5 m; true radius 0.07 m or drawn from the prior."""
+    rng = np.random.default_rng(seed)
+    traces = []
+    for _ in range(n_runs):
+        r = params.radius_prior + radius_std * rng.standard_normal() if radius_std else 0.07
+        truth = np.array([*rng.uniform(-1.0, 1.0, 2), r])
+        cams = circling_cameras(truth[:2], 0.5, n_views, start=rng.uniform(-math.pi, math.pi), aim_offset=rng.uniform(-0.2, 0.2))
+        traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers))
+    return traces
+
+
+def test_monte_carlo_nees_and_nis_inside_chi_square_bands():
+    """Model matched to the truth (radius drawn from the prior, static object): the filter is consistent."""
+    params = dataclasses.replace(PARAMS, radius_prior_std=0.02, process_noise=(0.0, 0.0, 0.0))
+    runs = 150
+    traces = circling_runs(params, runs, 60, seed=11, radius_std=0.02)
+    nees = np.array([t.nees for t in traces])  # (runs, views)
+    nis = np.array([t.nis[1:] for t in traces])
+    lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * runs) / runs
+    lo2, hi2 = chi2.ppf([0.025, 0.975], 2 * runs) / runs
+    mean_nees, mean_nis = nees.mean(axis=0), nis.mean(axis=0)
+    assert lo3 < mean_nees.mean() < hi3, mean_nees.mean()
+    assert lo2 < mean_nis.mean() < hi2, mean_nis.mean()
+    # Per view, the run-averaged NEES/NIS fall in their 95 % bands about as often as they should.
+    assert np.mean((lo3 < mean_nees) & (mean_nees < hi3)) > 0.85
+    assert np.mean((lo2 < mean_nis) & (mean_nis < hi2)) > 0.85
+
+
+def test_one_circle_at_half_a_metre_is_accurate():
+    traces = circling_runs(PARAMS, 60, 72, seed=5)
+    err = np.array([t.x[-1] - t.truth for t in traces])
+    assert np.median(np.hypot(err[:, 0], err[:, 1])) < 0.01
+    assert np.median(np.abs(err[:, 2])) < 0.002
+    assert all(t.accepted[1:].mean() > 0.95 for t in traces)
+
+
+def test_gross_outliers_are_gated_and_the_estimate_stays_unbiased():
+    traces = circling_runs(PARAMS, 60, 72, seed=8, outliers=0.10)
+    outlier = np.concatenate([t.outlier[1:] for t in traces])
+    accepted = np.concatenate([t.accepted[1:] for t in traces])
+    assert 0.07 < outlier.mean() < 0.13
+    assert np.mean(~accepted[outlier]) > 0.95  # outliers rejected
+    assert np.mean(accepted[~outlier]) > 0.98  # inliers kept
+    err = np.array([t.x[-1] - t.truth for t in traces])
+    assert np.median(np.hypot(err[:, 0], err[:, 1])) < 0.01
+    assert np.median(np.abs(err[:, 2])) < 0.002
+    sem = err.std(axis=0) / math.sqrt(len(err))
+    assert np.all(np.abs(err.mean(axis=0)) < 4 * sem + 1e-4), (err.mean(axis=0), sem)
+
+
+def test_bearing_only_radial_motion_keeps_the_range_uncertain():
+    truth = np.array([2.0, 0.0, 0.1])
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize((0.0, 0.0, 0.0), 0.0)
+    range_sigma0 = math.sqrt(ekf.P[0, 0])
+    assert range_sigma0 == pytest.approx(PARAMS.default_range_std)
+    for cx in np.linspace(0.05, 1.0, 20):  # walk straight at the object
+        cam = np.array([cx, 0.0, 0.0])
+        ekf.predict(0.1)
+        assert ekf.update(cam, measure(truth, cam)[0]).accepted
+    assert math.sqrt(ekf.P[0, 0]) >= range_sigma0  # no information on the range: no false confidence
+    assert abs(ekf.x[0] - truth[0]) < 3 * math.sqrt(ekf.P[0, 0])
+    assert math.sqrt(ekf.P[1, 1]) < 0.01  # the lateral position is observed
+
+    sideways = ObjectEKF(PARAMS)  # the same bearings from a lateral baseline do fix the range
+    sideways.initialize((0.0, 0.0, 0.0), 0.0)
+    for cy in np.linspace(0.05, 1.0, 20):
+        cam = np.array([0.0, cy, 0.0])
+        sideways.predict(0.1)
+        sideways.update(cam, measure(truth, cam)[0])
+    assert math.sqrt(sideways.P[0, 0]) < 0.1 * range_sigma0
+    assert abs(sideways.x[0] - truth[0]) < 0.05
+
+
+def test_initial_covariance_is_the_propagated_measurement_and_prior_noise():
+    """Sampling (phi, delta, r0) and mapping them through the initializer reproduces P0."""
+    rng = np.random.default_rng(2)
+    cam, phi, delta = np.array([0.2, 0.1, 0.4]), 0.1, 0.2
+    params = dataclasses.replace(PARAMS, radius_prior_std=0.01)  # keep the map close to linear
+    ekf = ObjectEKF(params)
+    ekf.initialize(cam, phi, delta)
+    samples = []
+    for _ in range(4000):
+        other = ObjectEKF(dataclasses.replace(params, radius_prior=params.radius_prior + params.radius_prior_std * rng.standard_normal()))
+        other.initialize(cam, phi + params.sigma_phi * rng.standard_normal(), delta + params.sigma_delta * rng.standard_normal())
+        samples.append(other.x)
+    np.testing.assert_allclose(np.cov(np.array(samples).T), ekf.P, rtol=0.1, atol=1e-7)
+
+
+def test_rollout_equals_a_loop_of_filter_updates():
+    rng = np.random.default_rng(4)
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize((0.0, 0.0, 0.0), 0.05, 0.15)
+    K, D, dt = 6, 8, 0.2
+    ang = rng.uniform(-math.pi, math.pi, (K, D))
+    rad = rng.uniform(0.4, 1.5, (K, D))
+    cams = np.stack([ekf.x[0] + rad * np.cos(ang), ekf.x[1] + rad * np.sin(ang), ang + math.pi + rng.uniform(-0.3, 0.3, (K, D))], -1)
+    cams[0, 3, :2] = ekf.x[:2]  # a camera inside the object is skipped, as the filter rejects it
+    visible = rng.random((K, D)) < 0.7
+    batched = rollout_covariance(ekf.x, ekf.P, cams, visible, PARAMS.Q(dt), R=PARAMS.R)
+    assert batched.shape == (K, 3, 3)
+    for k in range(K):
+        f = ekf.copy()
+        for j in range(D):
+            f.predict(dt)
+            if visible[k, j]:
+                f.update(cams[k, j], *measure(f.x, cams[k, j]))
+        np.testing.assert_allclose(f.x, ekf.x)  # noise-free synthesized measurements: the mean stays
+        np.testing.assert_allclose(batched[k], f.P, rtol=1e-9, atol=1e-15)
+    per_candidate = rollout_covariance(ekf.x, np.broadcast_to(ekf.P, (K, 3, 3)), cams, visible, PARAMS.Q(dt), R=PARAMS.R)
+    np.testing.assert_allclose(per_candidate, batched)
+    nothing_seen = rollout_covariance(ekf.x, ekf.P, cams, np.zeros((K, D), bool), PARAMS.Q(dt))
+    np.testing.assert_allclose(nothing_seen, np.broadcast_to(ekf.P + D * PARAMS.Q(dt), (K, 3, 3)))
+
+
+@pytest.mark.parametrize(
+    "cam, phi, delta, reason",
+    [
+        ((0.0, 0.0, 0.0), float("nan"), 0.2, "bearing is not finite"),
+        ((0.0, 0.0, 0.0), 0.1, float("nan"), "width must be finite"),
+        ((0.0, 0.0, 0.0), 0.1, -0.2, "width must be finite and in (0"),
+        ((0.0, float("inf"), 0.0), 0.1, 0.2, "camera pose must be 3 finite numbers"),
+        ((0.0, 0.0), 0.1, 0.2, "camera pose must be 3 finite numbers"),
+        ((1.0, 0.0, 0.0), 0.1, 0.2, "camera inside the estimated object"),
+    ],
+)
+def test_bad_inputs_are_rejected_with_a_reason_and_change_nothing(cam, phi, delta, reason):
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize((0.0, 0.0, 0.0), 0.0, 2 * math.asin(0.1 / 1.0))  # x = (1, 0, 0.1)
+    before = ekf.copy()
+    result = ekf.update(cam, phi, delta)
+    assert not result.accepted and reason in result.reason and result.nis is None
+    np.testing.assert_array_equal(ekf.x, before.x)
+    np.testing.assert_array_equal(ekf.P, before.P)
+    assert ekf.stats.invalid == 1
+
+
+def test_uninitialized_filter_and_bad_first_observation_are_rejected():
+    ekf = ObjectEKF(PARAMS)
+    assert ekf.update((0.0, 0.0, 0.0), 0.1, 0.2).reason == "filter not initialized"
+    result = ekf.initialize((0.0, 0.0, 0.0), float("nan"), 0.2)
+    assert not result.accepted and "bearing" in result.reason and not ekf.initialized
+    with pytest.raises(ValueError, match="dt"):
+        ekf.predict(-0.1)
+
+
+def test_gate_counts_rejections():
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize((0.0, 0.0, 0.0), 0.0, 2 * math.asin(0.1 / 1.0))
+    result = ekf.update((0.0, 0.0, 0.0), math.radians(10.0), 2 * math.asin(0.1 / 1.0))
+    assert not result.accepted and result.nis > ekf.gate(2) and ekf.stats.gated == 1
+    assert ekf.snapshot()["stats"] == {"accepted": 1, "gated": 1, "invalid": 0, "rejected_in_a_row": 1}
+
+
+def test_paper_width_form_misreads_true_widths_as_a_doubled_radius():
+    """DESIGN.md slip 1: atan(r/d) fits the measured full angle only with r about twice too large."""
+    paper = dataclasses.replace(PARAMS, width_model="paper_atan")
+    truth = np.array([0.0, 0.0, 0.08])
+    cams = circling_cameras(truth[:2], 0.6, 72, aim_offset=0.1)
+    rng = np.random.default_rng(9)
+    true_widths = simulate(ObjectEKF(PARAMS), truth, cams, rng)  # widths generated with asin
+    ekf = ObjectEKF(paper)
+    z = measure(truth, cams)
+    ekf.initialize(cams[0], *z[0])
+    for cam, obs in zip(cams[1:], z[1:]):
+        ekf.update(cam, *obs)
+    assert abs(true_widths.x[-1, 2] - truth[2]) < 0.002
+    assert 1.9 < ekf.x[2] / truth[2] < 2.2
+    # With widths that follow its own model, the paper form is consistent with itself.
+    own = simulate(ObjectEKF(paper), truth, cams, rng)
+    assert abs(own.x[-1, 2] - truth[2]) < 0.003
+
+
+def test_config_defaults_and_errors(tmp_path):
+    np.testing.assert_allclose(PARAMS.R, NOMINAL_R, rtol=1e-5)
+    assert PARAMS.width_model == "asin"
+    bad = tmp_path / "ekf.yaml"
+    bad.write_text("ekf:\n  width_model: atan\n")
+    with pytest.raises(ConfigError, match=r"ekf.width_model: expected one of \['asin', 'paper_atan'\]"):
+        load_ekf_params([bad])
