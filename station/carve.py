@@ -21,9 +21,9 @@ from agent.carving import VoxelCarver
 from agent.perception import extract_silhouette
 from nao_bridge.protocol import FrameMeta, decode
 from station.carving_worker import View, carve_views
-from station.mcap_log import read_log
+from station.mcap_log import LogError, read_log
 from station.pilot import camera_from_info
-from station.replay import LogError, load_setup
+from station.replay import load_setup
 from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME
 
 

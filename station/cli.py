@@ -30,14 +30,28 @@ from nao_bridge.config import ConfigError, main_error
 from station.config import StationConfig, load_station_config
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable
-from station.mcap_log import McapLog
-from station.replay import LogError, replay
+from station.mcap_log import LogError, McapLog
+from station.replay import replay
 from station.report import write_report
 from station.result import EXIT_FAILURE, build_result, exit_code, write_result
 from station.run import ControlLoop, RunSummary
 
 SIM = "sim"
 NAOQI_PORT = 9559
+
+
+def positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
 
 
 def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
@@ -50,7 +64,7 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     target.add_argument("--naoqi", metavar="HOST", help="start a bridge here that drives NAOqi at tcp://HOST:9559")
     start.add_argument("--config", action="append", default=[], metavar="FILE", help="config override(s), merged in order")
     start.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>)")
-    start.add_argument("--max-duration", type=float, metavar="S", help="mission time limit, s")
+    start.add_argument("--max-duration", type=positive_float, metavar="S", help="mission time limit, s")
     start.add_argument("--scenario", default="can", help="simulated object (with --robot sim): can, remote, figure")
     start.add_argument("--seed", type=int, default=0, help="simulator seed (with --robot sim)")
     start.add_argument("--resolution", help="camera resolution of a bridge the station starts (qvga, vga)")
@@ -61,8 +75,8 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     carve = sub.add_parser("carve", help="carve the model offline from a log")
     carve.add_argument("log", type=Path)
     carve.add_argument("-o", "--output", type=Path, default=Path("model.ply"), help="mesh file (.ply, .stl, .obj, .glb)")
-    carve.add_argument("--resolution", type=float, metavar="M", help="voxel edge, m (default: the run's)")
-    carve.add_argument("--tolerance", type=int, metavar="K", help="views that may call a voxel empty before it goes")
+    carve.add_argument("--resolution", type=positive_float, metavar="M", help="voxel edge, m (default: the run's)")
+    carve.add_argument("--tolerance", type=non_negative_int, metavar="K", help="views that may call a voxel empty before it goes")
 
     report = sub.add_parser("report", help="write the figures of a run")
     report.add_argument("log", type=Path)
@@ -82,7 +96,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return report_command(args)
     except ConfigError as exc:
         return main_error(exc)
-    except (LogError, OSError) as exc:
+    except (LogError, OSError, ValueError) as exc:  # unreadable log, refused volume, ...: one line, no traceback
         print(f"station {args.command}: {exc}", file=sys.stderr)
         return EXIT_FAILURE
 
@@ -108,8 +122,6 @@ class Interrupts:
 def start(args: argparse.Namespace) -> int:
     config = load_station_config(args.config)
     if args.max_duration is not None:
-        if args.max_duration <= 0:
-            raise ConfigError(f"--max-duration: expected a positive number of seconds, got {args.max_duration}")
         config = dataclasses.replace(config, mission=dataclasses.replace(config.mission, max_duration=args.max_duration))
     resolution = args.resolution or config.station.resolution
     out = args.out or Path("runs") / datetime.datetime.now().strftime("%Y%m%d-%H%M%S")

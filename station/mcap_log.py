@@ -33,6 +33,10 @@ from mcap_protobuf.schema import register_schema
 JsonPayload = Union[bytes, Dict[str, Any]]
 
 
+class LogError(ValueError):
+    """The log lacks what a tool needs (names the log and what is missing)."""
+
+
 def encode_json(payload: Dict[str, Any]) -> bytes:
     """Compact JSON as logged (replay compares outputs in this form, byte for byte)."""
     return json.dumps(payload, separators=(",", ":")).encode()

@@ -23,13 +23,9 @@ from nao_bridge.config import from_mapping
 from nao_bridge.landmark_map import LandmarkMap
 from nao_bridge.protocol import Frame, FrameMeta, Info, State, decode
 from station.config import SECTIONS, StationConfig
-from station.mcap_log import encode_json, read_log
+from station.mcap_log import LogError, encode_json, read_log
 from station.pilot import Pilot, Step
 from station.topics import AGENT_PREFIX, CONFIG, DECISION, FRAME_IMAGE, FRAME_META, INFO, INPUT, STATE
-
-
-class LogError(ValueError):
-    """The log lacks what a tool needs (names the log and what is missing)."""
 
 
 def load_setup(path: Union[str, Path]) -> Tuple[StationConfig, Info]:

@@ -25,7 +25,7 @@ from tqdm import tqdm  # noqa: E402
 
 from nao_bridge.protocol import Truth, decode  # noqa: E402
 from station.foxglove import ellipse_points  # noqa: E402
-from station.mcap_log import read_log  # noqa: E402
+from station.mcap_log import LogError, read_log  # noqa: E402
 from station.topics import COVERAGE, EKF, KEYFRAME, MEASUREMENT, POSE, TRUTH  # noqa: E402
 
 
@@ -68,6 +68,8 @@ def write_report(log_path: Union[str, Path], out_dir: Union[str, Path], mesh=Non
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     series = RunSeries.read(log_path)
+    if not (series.poses or series.ekf):
+        raise LogError(f"{log_path}: no robot pose and no object estimate in the log: nothing to draw")
     figures = [("trajectory.png", _trajectory), ("cameras.png", lambda s: _cameras(s, mesh)),
                ("progress.png", _progress)]
     if series.truth:
