@@ -15,10 +15,12 @@ Per frame (capture time s, head kinematics T_BC and odometry at capture, in the 
     coverage.add(cam);  keyframe iff the object was measured and the viewing azimuth
     a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle
 
-Per tick: the mission decides (:mod:`agent.mission`); in ACTIVE, every ``planner.period`` the
-planner's termination test runs (goal reached -> ``mission.on_goal``), else it replans; the walk
-command is the current plan's first command, re-sent every tick (the bridge's deadman); the head
-follows the head servo's target.
+Per tick: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the current
+plan's first command, re-sent every tick (the bridge's deadman), and the head follows the head
+servo's target. Then, once the tick's commands are out (planning never delays them), every
+``planner.period`` in ACTIVE the planner's termination test runs (goal reached ->
+``mission.on_goal``, the next tick stops the robot), else it replans (the new command goes out on
+the next tick).
 """
 
 from __future__ import annotations
@@ -120,19 +122,22 @@ class Pilot:
         return Step()
 
     def tick(self, t: float) -> Step:
-        step = Step()
+        """The mission's decision for now; in ACTIVE the current plan's command and the head target."""
         decision = self.mission.tick(t)
-        if decision.phase is Phase.ACTIVE:
-            self._control(step, t)
-            decision = self.mission.tick(t) if self.mission.phase is not Phase.ACTIVE else decision
         if decision.phase is Phase.ACTIVE:
             head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception)
             decision = Decision(decision.phase, walk=self.command, head=head)
-        step.decision = decision
-        step.outputs.append((DECISION, {
+        return Step([(DECISION, {
             "t": t, "phase": decision.phase.value, "walk": decision.walk, "head": decision.head, "stop": decision.stop,
             "outcome": decision.outcome.value if decision.outcome else None, "reason": decision.reason,
-        }))
+        })], decision=decision)
+
+    def replan(self, t: float) -> Step:
+        """After the tick's commands are sent: every planner period in ACTIVE, the termination test
+        (goal reached -> the next tick stops the robot) or a new plan (its command goes out next tick)."""
+        step = Step()
+        if self.mission.phase is Phase.ACTIVE:
+            self._control(step, t)
         return step
 
     # helpers ----------------------------------------------------------------------------------

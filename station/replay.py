@@ -75,7 +75,8 @@ def feed(pilot: Pilot, entry: Dict[str, Any], payload: Any) -> Step:
             raise LogError(f"frame {entry.get('seq')} journalled at t={t} is not in the log")
         return pilot.on_frame(payload, t)
     if kind == "tick":
-        return pilot.tick(t)
+        decision, plan = pilot.tick(t), pilot.replan(t)
+        return Step(decision.outputs + plan.outputs, decision.decision)
     if kind == "bridge_lost":
         return pilot.on_bridge_lost(t)
     if kind == "interrupt":

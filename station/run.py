@@ -7,7 +7,8 @@ One pass of the loop (single thread; Zenoh callbacks only enqueue):
     drain it: states -> pilot; truth -> log; bridge lost -> pilot; frames -> log all, keep the newest
     newest frame -> pilot (per-frame pipeline), keyframes -> carving worker
     tick due (t >= t_last_tick + control_period), or a frame just processed and half a period
-    passed -> pilot.tick -> walk and head commands sent, the walk command with its TTL
+    passed -> pilot.tick -> walk and head commands sent, the walk command with its TTL;
+    then pilot.replan (planner, when due: never delays the tick's commands)
     an interrupt flag set by SIGINT/SIGTERM -> pilot.on_interrupt
     flush the log about once a second
 
@@ -84,6 +85,7 @@ class ControlLoop:
         self.frames_received = 0
         self.frames_processed = 0
         self.latencies: List[float] = []  # frame arrival -> command sent, s (benchmark)
+        self.plan_times: List[float] = []  # duration of each replan, s (benchmark)
         t = clock()
         log.json(INFO, info_bytes, t, json_schema(Info))
         log.json(CONFIG, config_record(config), t, STATION_SCHEMA)
@@ -154,10 +156,14 @@ class ControlLoop:
         if t >= self._t_tick + period or (newest is not None and t >= self._t_tick + 0.5 * period):
             self._t_tick = t
             self._journal("tick", t)
-            step = self.pilot.tick(t)
-            finished = self._apply(step, t)
+            finished = self._apply(self.pilot.tick(t), t)
             if newest is not None:
                 self.latencies.append(self.clock() - newest.t)
+            t_plan = self.clock()
+            plan = self.pilot.replan(t)
+            if plan.outputs:
+                self.plan_times.append(self.clock() - t_plan)
+            self._apply(plan, t)
         self.log.maybe_flush()
         return finished
 
