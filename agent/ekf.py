@@ -65,8 +65,10 @@ batched over K with closed-form 2x2 inverses (:func:`rollout_covariance`).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+from numbers import Real
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Sequence, Tuple, Union
@@ -141,11 +143,12 @@ class FilterStats:
 
 
 def _geometry(x: np.ndarray, cams: np.ndarray) -> Tuple[np.ndarray, ...]:
+    """(dx, dy, d^2, r, psi) of states and cameras, broadcast against each other."""
     x = np.asarray(x, dtype=float)
     cams = np.asarray(cams, dtype=float)
     dx = x[..., 0] - cams[..., 0]
     dy = x[..., 1] - cams[..., 1]
-    return dx, dy, dx * dx + dy * dy, x[..., 2]
+    return dx, dy, dx * dx + dy * dy, x[..., 2], cams[..., 2]
 
 
 def measure(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
@@ -153,14 +156,15 @@ def measure(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -
 
     A camera inside the cylinder (d <= r) sees it fill half the world: delta saturates at pi (asin).
     """
-    dx, dy, d2, r = _geometry(x, cams)
+    dx, dy, d2, r, psi = _geometry(x, cams)
+    out = np.empty(np.broadcast_shapes(dx.shape, r.shape) + (2,))
+    out[..., 0] = wrap_angle(np.arctan2(dy, dx) - psi)
     d = np.sqrt(d2)
-    phi = wrap_angle(np.arctan2(dy, dx) - np.asarray(cams, dtype=float)[..., 2])
     if width_model == "asin":
-        delta = 2.0 * np.arcsin(np.clip(r / np.maximum(d, 1e-12), 0.0, 1.0))
+        out[..., 1] = 2.0 * np.arcsin(np.clip(r / np.maximum(d, 1e-12), 0.0, 1.0))
     else:
-        delta = np.arctan2(r, d)
-    return np.stack(np.broadcast_arrays(phi, delta), axis=-1)
+        out[..., 1] = np.arctan2(r, d)
+    return out
 
 
 def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
@@ -169,25 +173,37 @@ def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthMode
     Inside the cylinder (d <= r) the asin width row is not defined, at its centre (d = 0) neither is
     the bearing row; they are set to zero there.
     """
-    dx, dy, d2, r = _geometry(x, cams)
-    dx, dy, d2, r = np.broadcast_arrays(dx, dy, d2, r)
-    H = np.zeros(dx.shape + (2, 3))
+    dx, dy, d2, r, _ = _geometry(x, cams)
+    H = np.zeros(np.broadcast_shapes(dx.shape, r.shape) + (2, 3))
     bearing_d2 = np.where(d2 > 0.0, d2, np.inf)  # a camera at the centre: no bearing row
     H[..., 0, 0] = -dy / bearing_d2
     H[..., 0, 1] = dx / bearing_d2
     if width_model == "asin":
         slack = d2 - r * r
         outside = slack > 0.0
-        denom = np.where(outside, d2 * np.sqrt(np.where(outside, slack, 1.0)), np.inf)
-        H[..., 1, 0] = -2.0 * r * dx / denom
-        H[..., 1, 1] = -2.0 * r * dy / denom
-        H[..., 1, 2] = 2.0 * d2 / denom
+        scale = np.where(outside, 2.0 / np.where(outside, d2 * np.sqrt(np.maximum(slack, 0.0)), 1.0), 0.0)
+        H[..., 1, 0] = -r * dx * scale
+        H[..., 1, 1] = -r * dy * scale
+        H[..., 1, 2] = d2 * scale
     else:
-        denom = d2 + r * r
-        H[..., 1, 0] = -r * dx / (np.sqrt(bearing_d2) * denom)
-        H[..., 1, 1] = -r * dy / (np.sqrt(bearing_d2) * denom)
-        H[..., 1, 2] = np.sqrt(d2) / denom
+        scale = 1.0 / (d2 + r * r)
+        H[..., 1, 0] = -r * dx * scale / np.sqrt(bearing_d2)
+        H[..., 1, 1] = -r * dy * scale / np.sqrt(bearing_d2)
+        H[..., 1, 2] = np.sqrt(d2) * scale
     return H
+
+
+def _inverse_spd(S: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of (..., 1, 1) or (..., 2, 2) innovation covariances."""
+    if S.shape[-1] == 1:
+        return 1.0 / S
+    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+    inv = np.empty_like(S)
+    inv[..., 0, 0] = S[..., 1, 1]
+    inv[..., 1, 1] = S[..., 0, 0]
+    inv[..., 0, 1] = -S[..., 0, 1]
+    inv[..., 1, 0] = -S[..., 1, 0]
+    return inv / det[..., None, None]
 
 
 def rollout_covariance(
@@ -217,7 +233,7 @@ def rollout_covariance(
     mask = np.ones((n_cand, n_steps), dtype=bool) if visible is None else np.asarray(visible, dtype=bool)
     if mask.shape != (n_cand, n_steps):
         raise ValueError(f"visible must have shape {(n_cand, n_steps)}, got {mask.shape}")
-    _, _, d2, r = _geometry(x, cams)
+    _, _, d2, r, _ = _geometry(x, cams)
     mask = mask & (d2 > r * r)
     H = measurement_jacobian(x, cams, width_model)  # (K, D, 2, 3)
     P = np.broadcast_to(np.asarray(P, dtype=float), (n_cand, 3, 3)).copy()
@@ -227,13 +243,7 @@ def rollout_covariance(
         Hj = H[:, j]
         PHt = P @ Hj.transpose(0, 2, 1)  # (K, 3, 2)
         S = Hj @ PHt + R
-        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-        S_inv = np.empty_like(S)
-        S_inv[:, 0, 0] = S[:, 1, 1]
-        S_inv[:, 1, 1] = S[:, 0, 0]
-        S_inv[:, 0, 1] = -S[:, 0, 1]
-        S_inv[:, 1, 0] = -S[:, 1, 0]
-        S_inv /= det[:, None, None]
+        S_inv = _inverse_spd(S)
         gain = PHt @ S_inv  # (K, 3, 2)
         A = eye - gain @ Hj
         updated = A @ P @ A.transpose(0, 2, 1) + gain @ R @ gain.transpose(0, 2, 1)
@@ -271,10 +281,10 @@ class ObjectEKF:
         return self._gate[dof]
 
     def copy(self) -> "ObjectEKF":
-        other = ObjectEKF(self.params)
+        other = copy.copy(self)  # shares the immutable params, R and gate thresholds
         other.x = None if self.x is None else self.x.copy()
         other.P = None if self.P is None else self.P.copy()
-        other.stats = FilterStats(**self.stats.as_dict())
+        other.stats = dataclasses.replace(self.stats)
         return other
 
     def snapshot(self) -> dict:
@@ -288,9 +298,9 @@ class ObjectEKF:
     def _invalid(self, cam: Sequence[float], phi: float, delta: Optional[float]) -> Optional[str]:
         if np.shape(cam) != (3,) or not np.all(np.isfinite(cam)):
             return f"camera pose must be 3 finite numbers (cx, cy, psi), got {cam!r}"
-        if not math.isfinite(phi):
-            return f"bearing is not finite: {phi!r}"
-        if delta is not None and not (math.isfinite(delta) and 0.0 < delta < self._max_width):
+        if not (isinstance(phi, Real) and math.isfinite(phi)):
+            return f"bearing must be a finite number, got {phi!r}"
+        if delta is not None and not (isinstance(delta, Real) and math.isfinite(delta) and 0.0 < delta < self._max_width):
             return f"width must be finite and in (0, {self._max_width:.4f}) rad, got {delta!r}"
         return None
 
@@ -350,18 +360,19 @@ class ObjectEKF:
             H = self._jacobian(x_lin, cam, dof)
             S = H @ self.P @ H.T + R
             residual = self._innovation(x_lin, cam, z) - H @ (self.x - x_lin)
-            gain = self.P @ H.T @ np.linalg.inv(S)
+            S_inv = _inverse_spd(S)
+            gain = self.P @ H.T @ S_inv
             x_next = self.x + gain @ residual
             if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
                 break
-            step = (x_next, H, S, residual, gain)
+            step = (x_next, H, S_inv, residual, gain)
             if np.max(np.abs(x_next - x_lin)) < 1e-10:
                 break
             x_lin = x_next
         if step is None:
             return self._reject_invalid("update would put the camera inside the object or is degenerate", dof)
-        x, H, S, residual, gain = step
-        nis = float(residual @ np.linalg.solve(S, residual))  # = min MAP cost; the plain NIS when iterations = 1
+        x, H, S_inv, residual, gain = step
+        nis = float(residual @ S_inv @ residual)  # = min MAP cost; the plain NIS when iterations = 1
         if not math.isfinite(nis):
             return self._reject_invalid("innovation covariance is degenerate", dof)
         if nis > self._gate[dof]:

@@ -211,8 +211,10 @@ def test_rollout_equals_a_loop_of_filter_updates():
 @pytest.mark.parametrize(
     "cam, phi, delta, reason",
     [
-        ((0.0, 0.0, 0.0), float("nan"), 0.2, "bearing is not finite"),
+        ((0.0, 0.0, 0.0), float("nan"), 0.2, "bearing must be a finite number"),
         ((0.0, 0.0, 0.0), 0.1, float("nan"), "width must be finite"),
+        ((0.0, 0.0, 0.0), None, 0.2, "bearing must be a finite number"),
+        ((0.0, 0.0, 0.0), 0.1, "wide", "width must be finite"),
         ((0.0, 0.0, 0.0), 0.1, -0.2, "width must be finite and in (0"),
         ((0.0, float("inf"), 0.0), 0.1, 0.2, "camera pose must be 3 finite numbers"),
         ((0.0, 0.0), 0.1, 0.2, "camera pose must be 3 finite numbers"),
