@@ -359,7 +359,7 @@ class ObjectEKF:
         for _ in range(self.params.iterations):
             H = self._jacobian(x_lin, cam, dof)
             S = H @ self.P @ H.T + R
-            residual = self._innovation(x_lin, cam, z) - H @ (self.x - x_lin)
+            residual = nu if x_lin is self.x else self._innovation(x_lin, cam, z) - H @ (self.x - x_lin)
             S_inv = _inverse_spd(S)
             gain = self.P @ H.T @ S_inv
             x_next = self.x + gain @ residual
