@@ -103,36 +103,33 @@ def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Tupl
         _fill(image, cv2.convexHull(uv).reshape(-1, 2), color)
 
 
-@dataclass
 class _Solid:
-    """A convex part with flat-shaded faces: a vertical cylinder or a box."""
+    """A convex part with flat-shaded faces: a vertical cylinder (side, top cap) or a box (six faces)."""
 
-    part: Part
-    points_W: np.ndarray  # hull vertices
-    color: Tuple[int, int, int]
-
-    @property
-    def centre(self) -> np.ndarray:
-        return self.points_W.mean(axis=0)
+    def __init__(self, part: Part, points_W: np.ndarray, color: Tuple[int, int, int]):
+        self.points_W = points_W  # hull vertices: bottom ring then top ring (box: 4 + 4 corners)
+        self.centre = points_W.mean(axis=0)
+        self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
+        n = len(points_W) // 2
+        bottom, top = points_W[:n], points_W[n:]
+        up = np.array([0.0, 0.0, 1.0])
+        if part.shape == "cylinder":  # the side is shaded as a wall facing +x, the cap from above
+            self.hull_color = _shade(color, np.array([1.0, 0.0, 0.0]))
+            self.faces = [(top, up, _shade(color, up))]
+            return
+        self.hull_color = _shade(color, np.zeros(3))
+        self.faces = []
+        for face in [top, bottom] + [np.array([bottom[i], bottom[(i + 1) % 4], top[(i + 1) % 4], top[i]]) for i in range(4)]:
+            normal = np.cross(face[1] - face[0], face[2] - face[0])
+            normal *= np.sign(np.dot(normal, face.mean(axis=0) - self.centre)) / np.linalg.norm(normal)
+            self.faces.append((face, normal, _shade(color, normal)))
 
     def draw(self, image: np.ndarray, view: _View) -> None:
-        side_normal = np.array([1.0, 0.0, 0.0]) if self.part.shape == "cylinder" else np.zeros(3)
-        _fill_hull(image, view, self.points_W, _shade(self.color, side_normal))
-        n = len(self.points_W) // 2
-        bottom, top = self.points_W[:n], self.points_W[n:]
-        if self.part.shape == "cylinder":
-            if view.centre[2] > top[0, 2]:
-                _fill_hull(image, view, top, _shade(self.color, np.array([0.0, 0.0, 1.0])))
-            return
-        centre = self.centre
-        faces = [top, bottom] + [np.array([bottom[i], bottom[(i + 1) % 4], top[(i + 1) % 4], top[i]]) for i in range(4)]
-        for face in faces:
-            normal = np.cross(face[1] - face[0], face[2] - face[0])
-            normal /= np.linalg.norm(normal)
-            if np.dot(normal, face.mean(axis=0) - centre) < 0:
-                normal = -normal
-            if np.dot(normal, view.centre - face.mean(axis=0)) > 1e-9:
-                _fill_hull(image, view, face, _shade(self.color, normal))
+        """The hull first (no seams between faces), then every face turned towards the camera."""
+        _fill_hull(image, view, self.points_W, self.hull_color)
+        for face, normal, color in self.faces:
+            if np.dot(normal, view.centre - face[0]) > 1e-9:
+                _fill_hull(image, view, face, color)
 
 
 def _post(x: float, y: float, top: float) -> np.ndarray:
@@ -165,6 +162,10 @@ class _MarkerBoard:
     @property
     def centre(self) -> np.ndarray:
         return self.board_W.mean(axis=0)
+
+    @property
+    def radius(self) -> float:
+        return float(np.linalg.norm(self.board_W - self.centre, axis=1).max())
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         front = np.dot(self.landmark.normal, view.centre - self.centre) > 0
@@ -206,6 +207,10 @@ class _ColourDisc:
     def centre(self) -> np.ndarray:
         return np.asarray(self.landmark.position, dtype=float)
 
+    @property
+    def radius(self) -> float:  # disc and post
+        return float(self.landmark.position[2]) + self.landmark.diameter
+
     def draw(self, image: np.ndarray, view: _View) -> None:
         x, y, z = self.landmark.position
         _fill_hull(image, view, _post(x, y, z), (110, 110, 110))
@@ -218,11 +223,26 @@ class _ColourDisc:
         cv2.circle(image, tuple(int(v) for v in _fixed(uv)), int(round(r_px * (1 << SHIFT))), self.color, -1, cv2.LINE_AA, SHIFT)
 
 
+def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
+    """Inward unit normals (optical frame) of the planes z = 0 and of the image borders.
+
+    A point p is in view when n . p >= 0 for all five (distortion ignored: a culling test only).
+    """
+    n = np.array([
+        [0.0, 0.0, 1.0],
+        [intr.fx, 0.0, intr.cx],
+        [-intr.fx, 0.0, intr.width - intr.cx],
+        [0.0, intr.fy, intr.cy],
+        [0.0, -intr.fy, intr.height - intr.cy],
+    ])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def _textures(room: Room) -> Tuple[np.ndarray, int]:
     """A texture atlas: floor (1 m square, 0.5 m carpet tiles) above the wall (1 m wide, floor to top).
 
     Rows [0, S) are the floor, rows [S, S + wall rows) the wall from z = 0 upwards; the last row is
-    the ceiling. Returns the atlas flattened to (rows * S, 3) and the number of wall rows.
+    the ceiling. Returns the atlas image and the number of wall rows.
     """
     S = TEXELS_PER_M
     rng = np.random.default_rng(12345)  # a fixed texture, not a per-run draw
@@ -239,8 +259,7 @@ def _textures(room: Room) -> Tuple[np.ndarray, int]:
     wall += rng.normal(0.0, 4.0, (1, S, 1)) + rng.normal(0.0, 2.0, (wall_rows, S, 1))
     wall[: int(0.08 * S)] = (70.0, 85.0, 100.0)  # skirting board
     wall[-1] = (235.0, 235.0, 235.0)  # ceiling
-    atlas = np.clip(np.vstack([floor, wall]), 0, 255).astype(np.uint8)
-    return atlas.reshape(-1, 3), wall_rows
+    return np.clip(np.vstack([floor, wall]), 0, 255).astype(np.uint8), wall_rows
 
 
 class Renderer:
@@ -262,7 +281,7 @@ class Renderer:
         v, u = np.mgrid[0:h, 0:w].astype(np.float64)
         pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
         normalized = cv2.undistortPoints(pix, intrinsics.K, np.asarray(intrinsics.dist, dtype=float)).reshape(-1, 2)
-        self._rays = np.vstack([normalized.T, np.ones(len(normalized))]).astype(np.float32)  # 3 x N, z = 1
+        self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
         self._items: List = [_Solid(p, p.world_points(scenario.position, scenario.yaw), scenario.color) for p in scenario.parts]
         for lm in landmarks.landmarks:
@@ -272,6 +291,9 @@ class Renderer:
                 if lm.color not in COLOURS_BGR:
                     raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {sorted(COLOURS_BGR)}")
                 self._items.append(_ColourDisc(lm, COLOURS_BGR[lm.color]))
+        self._centres = np.array([item.centre for item in self._items])
+        self._frustum = _frustum_normals(intrinsics)
+        self._radii = np.array([item.radius for item in self._items])
         rng = np.random.default_rng(seed)
         self._noise = [rng.normal(0.0, pixel_sigma, (h + 16, w + 16, 3)).astype(np.int16) for _ in range(4)]
         self._pixel_sigma = pixel_sigma
@@ -280,32 +302,33 @@ class Renderer:
 
     def background(self, T_WC: np.ndarray) -> np.ndarray:
         """Floor, walls and ceiling seen from T_WC (H x W x 3 BGR)."""
-        S, hs = TEXELS_PER_M, self.room.half_size
-        cx, cy, cz = (float(c) for c in T_WC[:3, 3])
-        dx, dy, dz = T_WC[:3, :3].astype(np.float32) @ self._rays
+        S, hs = TEXELS_PER_M, np.float32(self.room.half_size)
+        c = T_WC[:3, 3].astype(np.float32)
+        R = T_WC[:3, :3].astype(np.float32)
+        d = np.stack([R[i, 0] * self._ray_x + R[i, 1] * self._ray_y + R[i, 2] for i in range(3)])  # no BLAS threads
         with np.errstate(divide="ignore", invalid="ignore"):
-            tx = (np.copysign(np.float32(hs), dx) - cx) / dx
-            ty = (np.copysign(np.float32(hs), dy) - cy) / dy
-            tf = np.float32(-cz) / dz
-        tw = np.minimum(tx, ty)
-        floor = (dz < 0) & (tf < tw)
-        t = np.where(floor, tf, tw)
-        hx = (cx + t * dx) * S
-        hy = (cy + t * dy) * S
-        along = np.where(tx < ty, hy, hx)
-        hz = np.clip((cz + t * dz) * S, 0, self._wall_rows - 1)
-        col = np.where(floor, hx, along).astype(np.int64) & (S - 1)
-        row = np.where(floor, hy.astype(np.int64) & (S - 1), S + hz.astype(np.int64))
-        return self._atlas[row * S + col].reshape(self.intrinsics.height, self.intrinsics.width, 3)
+            t_wall = np.minimum((np.copysign(hs, d[0]) - c[0]) / d[0], (np.copysign(hs, d[1]) - c[1]) / d[1])
+            t_floor = -c[2] / d[2]
+        floor = (t_floor > 0) & (t_floor < t_wall)
+        t = np.where(floor, t_floor, t_wall)
+        hit = (t * d + c[:, None]) * np.float32(S)  # texels
+        # on a wall one of x, y is +-half_size (a whole number of texture periods): x + y runs along it
+        u = np.where(floor, hit[0], hit[0] + hit[1])
+        v = np.where(floor, hit[1] - np.floor(hit[1] * (1.0 / S)) * S, np.clip(hit[2], 0, self._wall_rows - 1) + S)
+        h, w = self.intrinsics.height, self.intrinsics.width
+        return cv2.remap(self._atlas, u.reshape(h, w), v.reshape(h, w), cv2.INTER_NEAREST, borderMode=cv2.BORDER_WRAP)
 
     def render(self, T_WC: np.ndarray, frame_index: int) -> np.ndarray:
         """The camera image at T_WC; ``frame_index`` seeds this frame's noise (deterministic)."""
         T_WC = np.asarray(T_WC, dtype=float)
         image = self.background(T_WC)
         view = _View(T_WC, self.intrinsics)
-        depth = [float(np.linalg.norm(item.centre - view.centre)) for item in self._items]
+        centres_C = view.to_camera(self._centres)
+        in_view = (centres_C @ self._frustum.T > -self._radii[:, None]).all(axis=1)  # bounding spheres
+        depth = np.linalg.norm(centres_C, axis=1)
         for i in np.argsort(depth)[::-1]:
-            self._items[i].draw(image, view)
+            if in_view[i]:
+                self._items[i].draw(image, view)
         return self._add_noise(image, frame_index)
 
     def _add_noise(self, image: np.ndarray, frame_index: int) -> np.ndarray:

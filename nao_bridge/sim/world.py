@@ -145,16 +145,26 @@ class SimWorld:
     def _advance(self) -> None:
         """Step the world up to the clock (caller holds the lock)."""
         dt = self._dyn.timestep
-        steps = int((self._clock() - self._time) / dt)
-        for _ in range(max(steps, 0)):
-            self._step(dt)
-        self._time += max(steps, 0) * dt
+        steps = max(int((self._clock() - self._time) / dt), 0)
+        if self._at_rest():  # nothing moves: only the battery drains, in one go
+            self._battery = max(0.0, self._battery - steps * dt * self._dyn.battery_drain_idle)
+        else:
+            for _ in range(steps):
+                self._step(dt)
+        self._time += steps * dt
+
+    def _at_rest(self) -> bool:
+        return not (self._command.any() or self._velocity.any() or self._amplitude) and bool(
+            (self._head == self._head_target).all()
+        )
 
     def _step(self, dt: float) -> None:
         dyn = self._dyn
         tau = dyn.velocity_time_constant
         gain = 1.0 if tau == 0.0 else 1.0 - math.exp(-dt / tau)
         self._velocity += gain * (self._command - self._velocity)
+        if not self._command.any() and np.abs(self._velocity).max() < 1e-6:
+            self._velocity[:] = 0.0  # stopped: end the exponential tail
         nominal = self._velocity * dt
         if nominal.any():
             ds = math.hypot(nominal[0], nominal[1])
