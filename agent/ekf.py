@@ -68,8 +68,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from numbers import Real
 from dataclasses import dataclass, field
+from numbers import Real
 from pathlib import Path
 from typing import Literal, Optional, Sequence, Tuple, Union
 
@@ -366,7 +366,7 @@ class ObjectEKF:
             if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
                 break
             step = (x_next, H, S_inv, residual, gain)
-            if np.max(np.abs(x_next - x_lin)) < 1e-10:
+            if np.max(np.abs(x_next - x_lin)) < 1e-9:  # m: converged
                 break
             x_lin = x_next
         if step is None:
