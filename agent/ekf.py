@@ -58,7 +58,9 @@ Expected covariance for the planner (DESIGN.md item 7): K candidate camera seque
 rolled forward with synthesized noise-free observations at the predicted mean, so the innovation
 is zero, the mean stays and only the covariance evolves::
 
-    P_k,j = P_k,j-1 + Q_step;   if visible[k, j]: P_k,j = Joseph update with H(x, cam_k,j)
+    P_k,j = P_k,j-1 + Q_step;   if visible[k, j]: P_k,j -= K S K^T with H(x, cam_k,j)
+
+(with the optimal gain this equals the filter's Joseph-form update; a test checks the two agree)
 
 batched over K with closed-form 2x2 inverses (:func:`rollout_covariance`).
 """
@@ -237,18 +239,16 @@ def rollout_covariance(
     mask = mask & (d2 > r * r)
     H = measurement_jacobian(x, cams, width_model)  # (K, D, 2, 3)
     P = np.broadcast_to(np.asarray(P, dtype=float), (n_cand, 3, 3)).copy()
-    eye = np.eye(3)
+    Ht = H.swapaxes(-1, -2)  # (K, D, 3, 2)
+    weight = mask[..., None, None].astype(float)  # a zero gain skips the update
     for j in range(n_steps):
         P += Q_step
-        Hj = H[:, j]
-        PHt = P @ Hj.transpose(0, 2, 1)  # (K, 3, 2)
-        S = Hj @ PHt + R
-        S_inv = _inverse_spd(S)
-        gain = PHt @ S_inv  # (K, 3, 2)
-        A = eye - gain @ Hj
-        updated = A @ P @ A.transpose(0, 2, 1) + gain @ R @ gain.transpose(0, 2, 1)
-        P = np.where(mask[:, j, None, None], updated, P)
-    return 0.5 * (P + P.transpose(0, 2, 1))
+        PHt = P @ Ht[:, j]  # (K, 3, 2)
+        gain = PHt @ _inverse_spd(H[:, j] @ PHt + R) * weight[:, j]
+        # P - K S K^T = P - K (P H^T)^T: equal to the Joseph form for the optimal gain
+        P -= gain @ PHt.swapaxes(-1, -2)
+        P = 0.5 * (P + P.swapaxes(-1, -2))
+    return P
 
 
 def _range_from_width(r0: float, delta: float, width_model: WidthModel) -> Tuple[float, float, float]:
