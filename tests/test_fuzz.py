@@ -1,0 +1,330 @@
+"""Property-based fuzzing (hypothesis) of every decoder of outside input: no crash, no bad value through.
+
+Targets: the wire protocol's strict decoders (every JSON message type, ``decode_any``, the frame
+envelope), the YAML config loader (``nao_bridge.config.load`` on the bridge, station and transport
+sections), the landmark map loader and the station's MCAP log reader. Inputs are random bytes and
+text, and structure-aware mutations of valid samples (a field replaced by a hostile value, a key
+added or removed, NaN and infinities as JSON literals, bit flips and cuts in a valid log).
+
+Properties: a decoder returns a valid object or raises its documented error (ProtocolError,
+ConfigError; the log reader warns and yields the complete records); what it returns re-encodes
+(so holds no NaN or infinity) and keeps every declared bound. Nothing else may escape.
+
+Budget: each of the 7 targets runs ``CI_EXAMPLES`` (400) derandomized examples in the default
+suite: 2,800 generated inputs, about 6,800 decoder calls, in about 30 s on this machine. The
+``slow`` twins (``pytest -m slow tests/test_fuzz.py``, for ``make fuzz``) run ``LONG_EXAMPLES``
+(20,000) random examples per target.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Dict, Tuple
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from nao_bridge.bridge import BridgeParams
+from nao_bridge.config import CONFIG_DIR, ConfigError, load
+from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
+from nao_bridge.protocol import (
+    FRAME_MAGIC,
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    FrameMeta,
+    ProtocolError,
+    decode,
+    decode_any,
+    decode_frame,
+    encode,
+    encode_frame,
+    to_dict,
+)
+from nao_bridge.transport import TransportConfig
+from station.config import StationParams
+from station.mcap_log import McapLog, read_log
+from tests.test_protocol import samples
+
+CI_EXAMPLES = int(os.environ.get("FUZZ_CI_EXAMPLES", "400"))
+LONG_EXAMPLES = int(os.environ.get("FUZZ_LONG_EXAMPLES", "20000"))
+SCRATCH = Path(tempfile.mkdtemp(prefix="fuzz-"))  # one file per target, rewritten per example
+
+# -- hostile values ---------------------------------------------------------------------------------
+
+NON_FINITE = ("NaN", "Infinity", "-Infinity", "1e999", "-1e999")
+scalars = st.one_of(
+    st.none(), st.booleans(), st.integers(min_value=-(2**70), max_value=2**70),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+    st.sampled_from(["", "nan", "inf", "1e309", "-0", "\u0000", "cmd.walk", "jpeg", "vga", "deny"]),
+)
+json_values = st.recursive(scalars, lambda inner: st.one_of(
+    st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=8), inner, max_size=5)), max_leaves=20)
+
+
+def dumps(value: Any) -> bytes:
+    """JSON with NaN and infinities written as the literals a hostile peer would send."""
+    return json.dumps(value, allow_nan=True).encode("utf-8")
+
+
+@st.composite
+def mutated(draw, valid: Dict[str, Any]) -> Dict[str, Any]:
+    """``valid`` with one to three leaves replaced by hostile values, keys dropped or added."""
+    data = json.loads(json.dumps(valid))
+    for _ in range(draw(st.integers(1, 3))):
+        node, key = data, None
+        while node:  # walk down to a random leaf or container
+            key = draw(st.sampled_from(list(node) if isinstance(node, dict) else range(len(node))))
+            if not isinstance(node[key], (dict, list)) or draw(st.booleans()):
+                break
+            node, key = node[key], None
+        action = draw(st.sampled_from(["replace", "drop", "add"]))
+        if key is None or action == "add":
+            if isinstance(node, dict):
+                node[draw(st.text(max_size=8))] = draw(json_values)
+        elif action == "drop":
+            del node[key]
+        else:
+            node[key] = draw(json_values)
+    return data
+
+
+def check_message(message: Any) -> None:
+    """A decoded message re-encodes (no NaN/inf) and keeps every declared bound."""
+    encode(message)
+    for item in dataclasses.fields(message):
+        value = getattr(message, item.name)
+        lo, hi = item.metadata.get("bounds", (None, None))
+        for number in _numbers(value):
+            assert math.isfinite(number)
+            assert (lo is None or number >= lo) and (hi is None or number <= hi), (item.name, number)
+
+
+def _numbers(value: Any):
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield value
+    elif isinstance(value, (tuple, list)):
+        for item in value:
+            yield from _numbers(item)
+    elif isinstance(value, dict):
+        for item in value.values():
+            yield from _numbers(item)
+
+
+# -- targets ----------------------------------------------------------------------------------------
+
+VALID = {type(m).TYPE: m for m in samples()}
+FRAME_SAMPLE = VALID["frame"]
+JPEG = b"\xff\xd8\xff\xe0" + bytes(16) + b"\xff\xd9"
+
+
+def fuzz_message_bytes(data: bytes) -> None:
+    for cls in MESSAGE_TYPES.values():
+        try:
+            check_message(decode(data, cls))
+        except ProtocolError:
+            pass
+    try:
+        check_message(decode_any(data))
+    except ProtocolError:
+        pass
+
+
+def fuzz_message_fields(case: Tuple[str, Dict[str, Any], bool]) -> None:
+    type_name, data, as_literal = case
+    payload = dumps(data)
+    if as_literal:  # a number written as a non-finite literal
+        payload = payload.replace(b"0.", b"NaN", 1) if b"0." in payload else payload
+    try:
+        message = decode(payload, MESSAGE_TYPES[type_name])
+    except ProtocolError:
+        return
+    check_message(message)
+
+
+def fuzz_frame(case: Tuple[bytes, bytes, int]) -> None:
+    meta, tail, version = case
+    for payload in (meta + tail, FRAME_MAGIC + bytes([version]) + len(meta).to_bytes(4, "little") + meta + tail):
+        try:
+            frame = decode_frame(payload)
+        except ProtocolError:
+            continue
+        check_message(frame.meta)
+        assert frame.jpeg.startswith(b"\xff\xd8")
+
+
+def _write(name: str, text: str) -> Path:
+    path = SCRATCH / name
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    return path
+
+
+def _load_quietly(call: Callable[[], Any]) -> None:
+    try:
+        call()
+    except ConfigError:
+        pass
+
+
+def fuzz_config_text(text: str) -> None:
+    path = _write("config.yaml", text)
+    for cls, section in ((BridgeParams, "bridge"), (StationParams, "station"), (TransportConfig, "transport")):
+        _load_quietly(lambda: load(cls, [path], section=section))
+    _load_quietly(lambda: load_landmark_map(path))
+
+
+def fuzz_config_structure(case: Tuple[str, Dict[str, Any]]) -> None:
+    section, data = case
+    path = _write("mutated.yaml", yaml.safe_dump(data, allow_unicode=True))
+    cls = {"bridge": BridgeParams, "station": StationParams, "landmarks": LandmarkMap}[section]
+    try:
+        params = load(cls, [path], section=None if section == "landmarks" else section)
+    except ConfigError:
+        return
+    _check_params(params)
+
+
+def _check_params(value: Any) -> None:
+    """Every number in a loaded config is finite and within its field's bounds, recursively."""
+    if not dataclasses.is_dataclass(value):
+        return
+    for item in dataclasses.fields(value):
+        field_value = getattr(value, item.name)
+        lo, hi = item.metadata.get("bounds", (None, None))
+        for number in _numbers(field_value):
+            assert math.isfinite(number) and (lo is None or number >= lo) and (hi is None or number <= hi)
+        for nested in field_value if isinstance(field_value, tuple) else (field_value,):
+            _check_params(nested)
+
+
+def _valid_log() -> bytes:
+    path = SCRATCH / "valid.mcap"
+    with McapLog(path, flush_interval=0.0) as log:
+        for i in range(40):
+            log.json("/state", encode(VALID["state"]), 100.0 + 0.05 * i, {"title": "nao.State", "type": "object"})
+            log.json("/decision", {"i": i}, 100.0 + 0.05 * i, {"title": "x", "type": "object"})
+            log.maybe_flush()
+    return path.read_bytes()
+
+
+VALID_LOG = _valid_log()
+HEADER_BYTES = 64  # magic and header record: a shorter file is treated as corrupt (below)
+VALID_MESSAGES = [(m.topic, m.data) for m in read_log(SCRATCH / "valid.mcap")]
+
+
+def fuzz_log_cut(cut: int) -> None:
+    """A log cut anywhere after its header (a crash mid-write) reads as a prefix of what was written."""
+    path = SCRATCH / "cut.mcap"
+    path.write_bytes(VALID_LOG[:cut])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        kept = [(m.topic, m.data) for m in read_log(path)]
+    assert kept == VALID_MESSAGES[: len(kept)]
+
+
+def fuzz_log_corrupt(case: Tuple[int, bytes]) -> None:
+    """Flipped bits: the reader warns and yields what it can, or raises a clear ValueError (station's LogError)."""
+    cut, flip_at, noise = case
+    data = bytearray(VALID_LOG[:cut])
+    for i, byte in enumerate(noise):
+        data[(flip_at + i) % len(data)] ^= byte  # (cut >= 1)
+    path = SCRATCH / "corrupt.mcap"
+    path.write_bytes(bytes(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        try:
+            for message in read_log(path):
+                assert isinstance(message.topic, str) and isinstance(message.data, bytes)
+        except ValueError:
+            pass
+
+
+def _section(name: str) -> Dict[str, Any]:
+    return yaml.safe_load((CONFIG_DIR / f"{name}.yaml").read_text())
+
+
+meta_json = st.one_of(
+    st.binary(max_size=200),
+    mutated(to_dict(FRAME_SAMPLE)).map(dumps),
+    st.just(encode(FRAME_SAMPLE)),
+)
+TARGETS: Dict[str, Tuple[st.SearchStrategy, Callable[[Any], None]]] = {
+    "message-bytes": (st.one_of(st.binary(max_size=300), st.text(max_size=200).map(str.encode)), fuzz_message_bytes),
+    "message-fields": (
+        st.sampled_from(sorted(VALID)).flatmap(lambda name: st.tuples(
+            st.just(name), mutated(to_dict(VALID[name])), st.booleans())),
+        fuzz_message_fields,
+    ),
+    "frame": (st.tuples(meta_json, st.one_of(st.just(JPEG), st.binary(max_size=64)),
+                        st.sampled_from([PROTOCOL_VERSION, 0, 2, 255])), fuzz_frame),
+    "config-text": (st.one_of(st.text(max_size=300), st.sampled_from([
+        "bridge: {transport: {lease_ms: .nan}}", "station: {port: !!float inf}", "bridge: *x",
+        "landmarks: [{id: 1, kind: aruco, dictionary: DICT_4X4_50, size: 1e999, position: [0, 0, 0]}]",
+        "station: !!python/object/apply:os.system ['true']", "\ufeffstation: {}", "---\n...\n---",
+    ])), fuzz_config_text),
+    "config-structure": (st.sampled_from(["bridge", "station", "landmarks"]).flatmap(lambda name: st.tuples(
+        st.just(name), mutated(_section(name) if name != "landmarks" else
+                               yaml.safe_load((CONFIG_DIR / "landmarks" / "sim_room.yaml").read_text())))),
+        fuzz_config_structure),
+    "log-cut": (st.integers(HEADER_BYTES, len(VALID_LOG)), fuzz_log_cut),
+}
+CORRUPT_LOGS = (st.tuples(st.integers(1, len(VALID_LOG)), st.integers(0, len(VALID_LOG)), st.binary(max_size=8)),
+                fuzz_log_corrupt)
+
+
+def run(target: str, examples: int, derandomize: bool) -> None:
+    strategy, check = CORRUPT_LOGS if target == "log-corrupt" else TARGETS[target]
+    budget = settings(max_examples=examples, deadline=None, derandomize=derandomize, database=None,
+                      suppress_health_check=list(HealthCheck))
+    budget(given(strategy)(check))()
+
+
+LOG_CUT_BUG = pytest.mark.xfail(strict=True, reason="station.mcap_log.read_log: about 1.6 % of cut points make "
+                                                    "get_summary raise struct.error or OSError (reported)")
+
+
+@pytest.mark.parametrize("target", [pytest.param(t, marks=LOG_CUT_BUG) if t == "log-cut" else t for t in sorted(TARGETS)])
+def test_fuzz(target):
+    run(target, CI_EXAMPLES, derandomize=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", sorted(TARGETS))
+def test_fuzz_long(target):
+    run(target, LONG_EXAMPLES, derandomize=False)
+
+
+@pytest.mark.xfail(strict=True, reason="station.mcap_log.read_log: a corrupted log, or one cut within its "
+                                       "first 50 bytes, raises KeyError, MemoryError, OSError, struct.error... (reported)")
+def test_fuzz_corrupt_log():
+    run("log-corrupt", CI_EXAMPLES, derandomize=True)
+
+
+# -- hostile YAML the random search does not reach ---------------------------------------------------
+
+
+@pytest.mark.xfail(strict=True, raises=RecursionError,
+                   reason="nao_bridge.config: deeply nested YAML overflows the recursion (reported)")
+def test_deeply_nested_yaml_is_a_config_error():
+    path = _write("deep.yaml", "landmarks: " + "[" * 5000 + "]" * 5000)
+    with pytest.raises(ConfigError):
+        load_landmark_map(path)
+
+
+@pytest.mark.xfail(strict=True, reason="nao_bridge.config expands YAML aliases (a 'billion laughs' file "
+                                       "grows exponentially); it should refuse aliases (reported)")
+def test_yaml_alias_expansion_is_refused():
+    lines = ["a: &a [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"{chr(97 + i)}: &{chr(97 + i)} [{', '.join(['*' + chr(96 + i)] * 9)}]" for i in range(1, 4)]
+    path = _write("laughs.yaml", "\n".join(lines) + "\nlandmarks: *d\n")
+    with pytest.raises(ConfigError, match="alias"):
+        load_landmark_map(path)
