@@ -275,3 +275,13 @@ def test_config_defaults_and_errors(tmp_path):
     bad.write_text("ekf:\n  width_model: atan\n")
     with pytest.raises(ConfigError, match=r"ekf.width_model: expected one of \['asin', 'paper_atan'\]"):
         load_ekf_params([bad])
+
+
+def test_demo_writes_its_figures(tmp_path, capsys):
+    from tools.demo_estimation import main
+
+    assert main(["--out", str(tmp_path / "demo")]) == 0
+    printed = capsys.readouterr().out
+    for name in ("estimation_topview.png", "estimation_errors.png"):
+        path = tmp_path / "demo" / name
+        assert path.stat().st_size > 10_000 and f"wrote {path}" in printed

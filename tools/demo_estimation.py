@@ -105,24 +105,28 @@ def plot(trace: Trace, out: Path) -> list[Path]:
     truth, x, P = trace.truth, trace.x, trace.P
     n = len(x)
 
-    fig, ax = plt.subplots(figsize=(6.5, 6.5))
-    ax.add_patch(plt.Circle(truth[:2], truth[2], color="0.8", label="true object"))
-    ax.plot(trace.cams[:, 0], trace.cams[:, 1], "k.-", ms=3, lw=0.5, label="camera path")
+    fig, axes = plt.subplots(1, 3, figsize=(18, 6.2))
     shown = [0, 1, 2, 4, 8, n // 4, n // 2, n - 1]
     colors = plt.cm.viridis(np.linspace(0.0, 1.0, len(shown)))
-    for k, color in zip(shown, colors):
-        ax.plot(*x[k, :2], "+", color=color)
-        _ellipse(ax, x[k, :2], P[k, :2, :2], color=color, lw=1.2, label=f"view {k}: 3-sigma")
-        ax.add_patch(plt.Circle(x[k, :2], x[k, 2], fill=False, ls=":", color=color, lw=0.8))
-    ax.set_aspect("equal")
-    ax.set_xlim(truth[0] - 1.0, truth[0] + 1.0)
-    ax.set_ylim(truth[1] - 1.0, truth[1] + 1.0)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title("Object estimate and 3-sigma ellipse while circling (dotted: estimated radius)")
-    ax.legend(fontsize=7, loc="upper right")
+    for ax, half_width in zip(axes, (1.0, 0.15, 0.01)):
+        ax.add_patch(plt.Circle(truth[:2], truth[2], color="0.85", label="true object"))
+        ax.plot(*truth[:2], "kx", label="true centre")
+        ax.plot(trace.cams[:, 0], trace.cams[:, 1], "k.-", ms=3, lw=0.5, label="camera path")
+        for k, color in zip(shown, colors):
+            ax.plot(*x[k, :2], "+", color=color)
+            _ellipse(ax, x[k, :2], P[k, :2, :2], color=color, lw=1.2, label=f"view {k}: 3-sigma")
+            ax.add_patch(plt.Circle(x[k, :2], x[k, 2], fill=False, ls=":", color=color, lw=0.8))
+        ax.set_aspect("equal")
+        ax.set_xlim(truth[0] - half_width, truth[0] + half_width)
+        ax.set_ylim(truth[1] - half_width, truth[1] + half_width)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    axes[0].set_title("Estimate and 3-sigma ellipse while circling")
+    axes[1].set_title("Zoom +-15 cm (dotted circles: estimated radius)")
+    axes[2].set_title("Zoom +-1 cm: the later estimates")
+    axes[0].legend(fontsize=7, loc="upper right")
     top = out / "estimation_topview.png"
-    fig.savefig(top, dpi=120, bbox_inches="tight")
+    fig.savefig(top, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
     views = np.arange(n)
