@@ -296,7 +296,11 @@ class ObjectEKF:
         }
 
     def _invalid(self, cam: Sequence[float], phi: float, delta: Optional[float]) -> Optional[str]:
-        if np.shape(cam) != (3,) or not np.all(np.isfinite(cam)):
+        try:
+            cam_ok = np.shape(cam) == (3,) and bool(np.all(np.isfinite(np.asarray(cam, dtype=float))))
+        except (TypeError, ValueError):
+            cam_ok = False
+        if not cam_ok:
             return f"camera pose must be 3 finite numbers (cx, cy, psi), got {cam!r}"
         if not (isinstance(phi, Real) and math.isfinite(phi)):
             return f"bearing must be a finite number, got {phi!r}"
