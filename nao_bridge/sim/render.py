@@ -148,7 +148,7 @@ class _MarkerBoard:
     texture: np.ndarray  # marker image, black square = whole image
 
     @classmethod
-    def build(cls, lm: Landmark, texels: int = 60) -> "_MarkerBoard":
+    def build(cls, lm: Landmark, texels: int = 120) -> "_MarkerBoard":
         corners = lm.aruco_corners()
         m = BOARD_MARGIN * lm.size
         right = (corners[1] - corners[0]) / lm.size
@@ -196,24 +196,18 @@ class _MarkerBoard:
         roi[:] = (warped * alpha + roi * (1.0 - alpha)).astype(np.uint8)
 
 
-@dataclass
 class _ColourDisc:
     """A coloured landmark: a disc facing the camera on a thin grey post."""
 
-    landmark: Landmark
-    color: Tuple[int, int, int]
-
-    @property
-    def centre(self) -> np.ndarray:
-        return np.asarray(self.landmark.position, dtype=float)
-
-    @property
-    def radius(self) -> float:  # disc and post
-        return float(self.landmark.position[2]) + self.landmark.diameter
+    def __init__(self, landmark: Landmark, color: Tuple[int, int, int]):
+        self.landmark = landmark
+        self.color = color
+        self.centre = np.asarray(landmark.position, dtype=float)
+        self.radius = float(self.centre[2]) + landmark.diameter  # bounds the disc and the post
+        self.post_W = _post(*landmark.position)
 
     def draw(self, image: np.ndarray, view: _View) -> None:
-        x, y, z = self.landmark.position
-        _fill_hull(image, view, _post(x, y, z), (110, 110, 110))
+        _fill_hull(image, view, self.post_W, (110, 110, 110))
         c = view.to_camera(self.centre[None])[0]
         radius = 0.5 * self.landmark.diameter
         if c[2] < NEAR + radius:
