@@ -23,15 +23,12 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import os
 import signal
 import subprocess
 import sys
 import threading
 import time
 import types
-import warnings
-from pathlib import Path
 from typing import List, Optional
 
 import pytest

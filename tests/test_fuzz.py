@@ -25,33 +25,39 @@ import os
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Dict, Tuple
+from typing import Any, Callable, Dict, List, Tuple
 
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nao_bridge.bridge import BridgeParams
+from nao_bridge.bridge import Bridge, BridgeParams
 from nao_bridge.config import CONFIG_DIR, ConfigError, load
 from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
+from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_bridge.protocol import (
     FRAME_MAGIC,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
-    FrameMeta,
+    HeadCommand,
     ProtocolError,
+    RobotKeys,
+    WalkCommand,
     decode,
     decode_any,
     decode_frame,
     encode,
-    encode_frame,
     to_dict,
 )
-from nao_bridge.transport import TransportConfig
+from nao_bridge.robot_model import load_robot_model
+from nao_bridge.sim import SimWorld
+from nao_bridge.standin import StandIn
+from nao_bridge.transport import TransportConfig, open_session
 from station.config import StationParams
 from station.mcap_log import McapLog, read_log
 from tests.test_protocol import samples
+from tests.zenoh_peers import free_port, wait_until
 
 CI_EXAMPLES = int(os.environ.get("FUZZ_CI_EXAMPLES", "400"))
 LONG_EXAMPLES = int(os.environ.get("FUZZ_LONG_EXAMPLES", "20000"))
@@ -281,11 +287,16 @@ CORRUPT_LOGS = (st.tuples(st.integers(1, len(VALID_LOG)), st.integers(0, len(VAL
                 fuzz_log_corrupt)
 
 
-def run(target: str, examples: int, derandomize: bool) -> None:
-    strategy, check = CORRUPT_LOGS if target == "log-corrupt" else TARGETS[target]
+def run_given(strategy: st.SearchStrategy, check: Callable[[Any], None], examples: int,
+              derandomize: bool = True) -> None:
     budget = settings(max_examples=examples, deadline=None, derandomize=derandomize, database=None,
                       suppress_health_check=list(HealthCheck))
     budget(given(strategy)(check))()
+
+
+def run(target: str, examples: int, derandomize: bool) -> None:
+    strategy, check = CORRUPT_LOGS if target == "log-corrupt" else TARGETS[target]
+    run_given(strategy, check, examples, derandomize)
 
 
 LOG_CUT_BUG = pytest.mark.xfail(strict=True, reason="station.mcap_log.read_log: about 1.6 % of cut points make "
@@ -307,6 +318,53 @@ def test_fuzz_long(target):
                                        "first 50 bytes, raises KeyError, MemoryError, OSError, struct.error... (reported)")
 def test_fuzz_corrupt_log():
     run("log-corrupt", CI_EXAMPLES, derandomize=True)
+
+
+# -- through the real bridge: hostile commands never move the robot ----------------------------------
+
+
+def test_hostile_commands_through_the_bridge_never_move_the_robot():
+    """Malformed walk and head commands on the wire: all rejected and counted, no ALMotion call."""
+    hostile = st.one_of(st.binary(max_size=200), mutated(to_dict(VALID["cmd.walk"])).map(dumps),
+                        mutated(to_dict(VALID["cmd.head"])).map(dumps))
+    port = free_port()
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
+    params = dataclasses.replace(params, resolution="qvga", fps=2.0,
+                                 transport=TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    model = load_robot_model()
+    with StandIn(SimWorld("can", model, resolution="qvga", seed=3)) as standin:
+        bridge = Bridge(NaoqiBackend(standin.url, model, params.naoqi, "qvga", params.fps), model, params, "naoqi")
+        bridge.start()
+        session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+        try:
+            token = session.liveliness().declare_token(RobotKeys("nao").station_alive)
+            assert wait_until(lambda: bridge.station_alive, 5.0)
+            head_calls = len(standin.calls_to("ALMotion.setAngles"))
+            sent: List[bytes] = []
+
+            def send(payload: bytes) -> None:
+                kinds = [cls for cls in (WalkCommand, HeadCommand) if _decodes(payload, cls)]
+                for key, cls in ((RobotKeys("nao").cmd_walk, WalkCommand), (RobotKeys("nao").cmd_head, HeadCommand)):
+                    if cls not in kinds:  # only what the decoder refuses: a valid command may move the robot
+                        session.put(key, payload)
+                        sent.append(payload)
+
+            run_given(hostile, send, CI_EXAMPLES // 2)
+            assert wait_until(lambda: sum(bridge.rejected.values()) == len(sent), 10.0), (len(sent), bridge.rejected)
+            assert standin.calls_to("ALMotion.move") == []
+            assert len(standin.calls_to("ALMotion.setAngles")) == head_calls
+            token.undeclare()
+        finally:
+            session.close()
+            bridge.close()
+
+
+def _decodes(payload: bytes, cls: type) -> bool:
+    try:
+        decode(payload, cls)
+        return True
+    except ProtocolError:
+        return False
 
 
 # -- hostile YAML the random search does not reach ---------------------------------------------------

@@ -123,7 +123,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"make_certs: {exc}", file=sys.stderr)
         return 1
     print("\n".join(str(f) for f in files))
-    print(f"copy ca.pem, bridge.pem and bridge.key to the robot; keep ca.key off the network", file=sys.stderr)
+    print("copy ca.pem, bridge.pem and bridge.key to the robot; keep ca.key off the network", file=sys.stderr)
     return 0
 
 
