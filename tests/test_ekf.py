@@ -23,7 +23,7 @@ from agent.ekf import (
 )
 from nao_bridge.config import ConfigError
 from nao_bridge.robot_model import load_robot_model
-from tools.demo_estimation import circling_cameras, simulate
+from tools.demo_estimation import circling_cameras, circling_runs, simulate
 
 PARAMS = load_ekf_params()
 coord = st.floats(-3.0, 3.0)
@@ -88,18 +88,6 @@ def test_bearing_and_width_from_image_equal_analytic(dist, yaw, pitch):
         _, phi, delta = bearing_width_from_pixels(camera, uv_l[i], uv_r[i][None], T_WC)
         assert abs(math.degrees(wrap_angle(phi - expected[0]))) < 0.01
         assert abs(math.degrees(delta - expected[1])) < 0.01
-
-
-def circling_runs(params, n_runs: int, n_views: int, seed: int, radius_std: float = 0.0, outliers: float = 0.0):
-    """Runs of a camera circling a random object at 0.5 m; true radius 0.07 m or drawn from the prior."""
-    rng = np.random.default_rng(seed)
-    traces = []
-    for _ in range(n_runs):
-        r = params.radius_prior + radius_std * rng.standard_normal() if radius_std else 0.07
-        truth = np.array([*rng.uniform(-1.0, 1.0, 2), r])
-        cams = circling_cameras(truth[:2], 0.5, n_views, start=rng.uniform(-math.pi, math.pi), aim_offset=rng.uniform(-0.2, 0.2))
-        traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers))
-    return traces
 
 
 def test_monte_carlo_nees_and_nis_inside_chi_square_bands():

@@ -4,8 +4,8 @@ Usage: ``python -m tools.demo_estimation --out DIR [--seed N]``. Writes ``estima
 (true object, camera path, estimate with its 3-sigma ellipse at several times) and
 ``estimation_errors.png`` (centre and radius errors with their 3-sigma bounds over time).
 
-The simulation helpers (:func:`circling_cameras`, :func:`simulate`) are reused by the tests and the
-benchmark so that all three exercise the filter on the same synthetic ground truth.
+The simulation helpers (:func:`circling_cameras`, :func:`simulate`, :func:`circling_runs`) are reused
+by the tests and the benchmark so that all three exercise the filter on the same synthetic ground truth.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from agent.ekf import ObjectEKF, load_ekf_params, measure
+from agent.ekf import EKFParams, ObjectEKF, load_ekf_params, measure
 
 
 def circling_cameras(
@@ -84,6 +84,25 @@ def simulate(
         nis.append(np.nan if result.nis is None else result.nis)
         accepted.append(result.accepted)
     return Trace(np.asarray(truth, float), cams, np.array(xs), np.array(Ps), np.array(nis), np.array(accepted), outlier)
+
+
+def circling_runs(
+    params: EKFParams, n_runs: int, n_views: int, seed: int, radius_std: float = 0.0, outliers: float = 0.0
+) -> list[Trace]:
+    """Monte-Carlo runs of one circle at 0.5 m around a random object (centre in [-1, 1]^2 m).
+
+    The true radius is 0.07 m, or drawn from N(radius_prior, radius_std^2) when ``radius_std`` > 0
+    (a prior that matches the truth, for consistency checks). Random start angle and aim offset.
+    """
+    rng = np.random.default_rng(seed)
+    traces = []
+    for _ in range(n_runs):
+        r = params.radius_prior + radius_std * rng.standard_normal() if radius_std else 0.07
+        truth = np.array([*rng.uniform(-1.0, 1.0, 2), r])
+        start, aim = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2)
+        cams = circling_cameras(truth[:2], 0.5, n_views, start=start, aim_offset=aim)
+        traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers))
+    return traces
 
 
 def _ellipse(ax, centre: np.ndarray, cov: np.ndarray, **style) -> None:
