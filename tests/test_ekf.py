@@ -228,6 +228,20 @@ def test_uninitialized_filter_and_bad_first_observation_are_rejected():
         ekf.predict(-0.1)
 
 
+def test_bearing_innovation_is_wrapped_across_pi():
+    """Object behind the optical axis: measured pi - e against predicted -pi + e is a -2e innovation."""
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize((0.0, 0.0, 0.0), -math.pi + 0.02, 2 * math.asin(0.1 / 1.0))  # estimate near (-1, -0.02)
+    cam = np.array([0.0, -0.01, 0.0])
+    predicted = measure(ekf.x, cam)[0]
+    truth = np.array([-1.0, 0.0, 0.1])
+    phi, delta = measure(truth, cam)
+    assert predicted < -3.1 and phi > 3.1  # on both sides of the cut
+    result = ekf.update(cam, phi, delta)
+    assert result.accepted and result.innovation[0] == pytest.approx(wrap_angle(phi - predicted)) and abs(result.innovation[0]) < 0.05
+    assert abs(ekf.x[1] - truth[1]) < 0.01
+
+
 def test_gate_counts_rejections():
     ekf = ObjectEKF(PARAMS)
     ekf.initialize((0.0, 0.0, 0.0), 0.0, 2 * math.asin(0.1 / 1.0))
