@@ -1,0 +1,271 @@
+"""Space carving against ground truth: analytic shapes and their exact visual hulls, real images."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from scipy import ndimage
+
+from agent.camera import CameraModel, invert
+from agent.carving import CarvingParams, VoxelCarver, carve, load_carving_params, load_npz, volume_bounds
+from agent.mesh import save_mesh
+from tools.carving_scenes import Box, Cylinder, Sphere, Union, analytic_hull, render_mask, ring_poses
+
+PITCH = 0.002
+CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))
+TEMPLE = Path("/work/shared/data/middlebury/templeSparseRing")
+
+# Objects about 0.4 m across (a chair-sized target for a NAO), 12 VGA cameras at 1.2 m on three rings.
+# The conservative carve keeps every voxel its cube's footprint touches, a shell about 0.75 voxel
+# thicker than the centre-sampled analytic hull, so IoU ~ 1 - 2.3 pitch / size: 0.97 at 2 mm needs
+# objects of about 0.4 m (docs/carving.md).
+SHAPES = {
+    "sphere": Sphere((0.0, 0.0, 0.21), 0.2),
+    "cylinder": Cylinder(0.0, 0.0, 0.18, 0.0, 0.42),
+    "box": Box((-0.2, -0.15, 0.0), (0.2, 0.15, 0.38)),
+}
+LO, HI = np.array([-0.22, -0.22, 0.0]), np.array([0.22, 0.22, 0.44])
+CENTRE = (0.0, 0.0, 0.21)
+
+
+def views_of(shape, camera: CameraModel = CAMERA, count: int = 12, lo=LO, hi=HI, distance: float = 1.2):
+    poses = ring_poses(CENTRE, distance, count, (0.15, 0.5, 0.85))
+    return [(render_mask(shape, camera, T, (lo, hi)), camera, T) for T in poses]
+
+
+def voxel_centres(carver: VoxelCarver, flat_index: np.ndarray = None) -> np.ndarray:
+    idx = np.indices(carver.shape).reshape(3, -1).T if flat_index is None else np.column_stack(np.unravel_index(flat_index, carver.shape))
+    return carver.origin + carver.pitch * idx
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.count_nonzero(a & b) / np.count_nonzero(a | b))
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return {name: views_of(shape) for name, shape in SHAPES.items()}
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_carve_contains_shape_and_matches_analytic_hull(scenes, name):
+    shape, views = SHAPES[name], scenes[name]
+    carver = carve(views, LO, HI, PITCH)
+    occupancy = carver.occupancy
+    # Ground truth is evaluated on the carve grown by 3 voxels (holds the whole analytic hull if the
+    # carve is right) plus a random 2 % of all voxels (checks the rest is empty in truth too).
+    band = ndimage.binary_dilation(occupancy, iterations=3).ravel()
+    band[np.random.default_rng(0).random(band.size) < 0.02] = True
+    where = np.flatnonzero(band)
+    centres = voxel_centres(carver, where)
+    carved, hull = occupancy.ravel()[where], analytic_hull(shape, views, centres)
+    assert np.all(carved[shape.contains(centres)]), "a voxel of the true shape was carved"
+    assert np.all(carved[hull]), "conservative carving lost a voxel of the analytic visual hull"
+    assert iou(carved, hull) >= 0.97
+
+
+def test_coarse_to_fine_equals_testing_every_voxel(scenes):
+    views = scenes["cylinder"][:6]
+    octree = carve(views, LO, HI, 0.004, CarvingParams(octree_levels=5))
+    dense = carve(views, LO, HI, 0.004, CarvingParams(octree_levels=0))
+    assert octree.occupancy.any() and np.array_equal(octree.occupancy, dense.occupancy)
+
+
+@pytest.mark.parametrize("tolerance", [0, 1])
+def test_live_and_batch_in_any_order_give_identical_grids(scenes, tolerance):
+    views = scenes["box"]
+    params = CarvingParams(tolerance=tolerance)
+    live = VoxelCarver(LO, HI, 0.003, params)
+    removed = [live.add_view(*view) for view in views]
+    order = np.random.default_rng(7).permutation(len(views))
+    batch = carve([views[i] for i in order], LO, HI, 0.003, params)
+    assert sum(removed) > 0 and live.views_added == len(views)
+    assert np.array_equal(live.occupancy, batch.occupancy)
+
+
+def test_thin_pole_survives_where_a_centre_pixel_test_loses_it():
+    pole = Cylinder(0.0403, -0.0211, 0.0015, 0.0, 0.25)  # 3 mm diameter
+    lo, hi = np.array([0.0, -0.06, 0.0]), np.array([0.08, 0.02, 0.26])
+    views = views_of(pole, lo=lo, hi=hi)
+    carver = carve(views, lo, hi, PITCH)
+    centres = voxel_centres(carver)
+    on_axis = np.hypot(centres[:, 0] - pole.x, centres[:, 1] - pole.y) <= PITCH * math.sqrt(0.5)
+    on_axis &= centres[:, 2] < pole.z1
+    assert np.all(carver.occupancy.ravel()[on_axis]), "the pole was cut"
+    naive = np.ones(len(centres), dtype=bool)  # keep a voxel iff the pixel under its centre is on in every view
+    for mask, camera, T_WC in views:
+        uv = np.rint(camera.project_world(centres, T_WC)[0]).astype(int)
+        naive &= mask[uv[:, 1].clip(0, camera.height - 1), uv[:, 0].clip(0, camera.width - 1)] > 0
+    assert not np.all(naive[on_axis]), "the pole is too easy: a centre-pixel test keeps it too"
+
+
+def test_bitten_silhouette_is_outvoted_with_tolerance_one(scenes):
+    shape, views = SHAPES["sphere"], list(scenes["sphere"])
+    bitten = views[4][0].copy()
+    ys, xs = np.nonzero(bitten)
+    cv2.circle(bitten, (int(xs.mean()), int(ys.mean())), 40, 0, thickness=-1)
+    views[4] = (bitten, *views[4][1:])
+    inside = None
+    for tolerance, survives in ((0, False), (1, True)):
+        carver = carve(views, LO, HI, 0.003, CarvingParams(tolerance=tolerance))
+        centres = voxel_centres(carver)
+        inside = shape.contains(centres) if inside is None else inside
+        assert np.all(carver.occupancy.ravel()[inside]) == survives
+
+
+def test_voxels_behind_the_camera_or_outside_the_image_are_kept():
+    camera = CameraModel.from_fov(64, 48, math.radians(40.0))
+    T_WC = np.eye(4)  # at the origin looking along +z: the volume spans both sides of the camera
+    carver = VoxelCarver((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.05)
+    carver.add_view(np.zeros((48, 64), np.uint8), camera, T_WC)
+    x, y, z = np.moveaxis(voxel_centres(carver).reshape(*carver.shape, 3), -1, 0)
+    occupancy = carver.occupancy
+    assert np.all(occupancy[z < 0]), "voxels behind the camera were carved"
+    beside = (z > 0.3) & (np.abs(x) > z * (math.tan(math.radians(20.0)) + 0.2))
+    assert np.all(occupancy[beside]), "voxels outside the image were carved"
+    seen = (z > 0.3) & (np.abs(x) < 0.2 * z) & (np.abs(y) < 0.15 * z)
+    assert seen.any() and not occupancy[seen].any(), "an empty silhouette must carve what the camera sees"
+
+
+def test_distorted_camera_carves_as_well_as_the_pinhole():
+    K = CAMERA.K
+    camera = CameraModel(K=K, dist=np.array([-0.12, 0.05, 0.001, -0.0005, 0.0]), width=640, height=480)
+    shape = SHAPES["cylinder"]
+    views = views_of(shape, camera, count=8)
+    carver = carve(views, LO, HI, 0.003)
+    centres = voxel_centres(carver)
+    hull = analytic_hull(shape, views, centres)
+    assert np.all(carver.occupancy.ravel()[shape.contains(centres)])
+    assert iou(carver.occupancy.ravel(), hull) >= 0.93
+
+
+def test_mesh_is_watertight_and_exports(scenes, tmp_path):
+    carver = carve(scenes["box"], LO, HI, 0.004)
+    mesh = carver.to_mesh()
+    assert mesh.is_watertight and mesh.volume > 0
+    assert mesh.volume == pytest.approx(carver.metrics().volume, rel=0.05)
+    for suffix in (".ply", ".stl", ".obj", ".glb"):
+        loaded = trimesh.load(save_mesh(mesh, tmp_path / f"hull{suffix}"), force="mesh")
+        assert loaded.volume == pytest.approx(mesh.volume, rel=1e-3)
+    with pytest.raises(ValueError, match="suffix"):
+        save_mesh(mesh, tmp_path / "hull.xyz")
+
+
+def test_two_separate_objects_give_a_watertight_mesh_of_two_bodies():
+    shape = Union((Sphere((-0.08, 0.0, 0.1), 0.05), Box((0.04, -0.04, 0.0), (0.12, 0.04, 0.1))))
+    views = views_of(shape, count=8)
+    mesh = carve(views, LO, HI, 0.004).to_mesh()
+    assert mesh.is_watertight and len(mesh.split(only_watertight=True)) == 2
+
+
+def test_npz_round_trip_and_metrics(scenes, tmp_path):
+    box = SHAPES["box"]
+    carver = carve(scenes["box"], LO, HI, PITCH)
+    occupancy, origin, pitch = load_npz(carver.save_npz(tmp_path / "hull.npz"))
+    assert np.array_equal(occupancy, carver.occupancy) and pitch == PITCH
+    assert np.allclose(origin, LO + PITCH / 2)
+    m = carver.metrics()
+    size = np.subtract(box.hi, box.lo)
+    # The hull holds the box and exceeds it by little more than a voxel per side.
+    assert size[0] <= m.width <= size[0] + 4 * PITCH
+    assert size[1] <= m.depth <= size[1] + 4 * PITCH
+    assert size[2] <= m.height <= size[2] + 4 * PITCH
+    assert np.allclose(m.centroid, np.add(box.lo, box.hi) / 2, atol=0.004)
+    assert np.prod(size) <= m.volume <= 1.15 * np.prod(size)
+    empty = VoxelCarver(LO, HI, 0.01)
+    empty.add_view(np.zeros((480, 640), bool), CAMERA, ring_poses(CENTRE, 1.2, 1, (0.3,))[0])
+    assert empty.metrics().volume == 0.0 and empty.metrics().centroid is None
+
+
+def test_volume_from_estimate_holds_the_object_and_bounds_its_height(scenes):
+    box = SHAPES["box"]
+    params = load_carving_params()
+    covariance = np.diag([0.01**2, 0.02**2, 0.005**2])
+    lo, hi = volume_bounds((0.0, 0.0), 0.19, params, covariance, scenes["box"])
+    rho = 0.19 + params.margin + params.sigma_scale * (0.02 + 0.005)
+    assert np.allclose(lo, (-rho, -rho, 0.0)) and np.allclose(hi[:2], (rho, rho))
+    assert box.hi[2] <= hi[2] < params.max_height, "the top rays must bound the box from above"
+    unseen = volume_bounds((0.0, 0.0), 0.19, params)[1][2]
+    assert unseen == params.max_height
+    carver = VoxelCarver.from_estimate((0.0, 0.0), 0.19, params, covariance, scenes["box"])
+    assert np.allclose(carver.corner, lo) and carver.pitch == params.pitch
+
+
+def test_resolution_in_cells():
+    carver = VoxelCarver(LO, HI, params=CarvingParams(cells=68))
+    assert carver.pitch == pytest.approx(0.005) and max(carver.shape) == 68
+
+
+def test_config_defaults_match_the_dataclass():
+    assert load_carving_params() == CarvingParams()
+    assert dataclasses.replace(CarvingParams(), tolerance=2).tolerance == 2
+
+
+def test_bad_views_are_rejected_with_a_clear_error():
+    carver = VoxelCarver(LO, HI, 0.01)
+    mask = np.zeros((480, 640), np.uint8)
+    pose = ring_poses(CENTRE, 1.2, 1, (0.3,))[0]
+    nan_pose = pose.copy()
+    nan_pose[0, 3] = np.nan
+    sheared = pose.copy()
+    sheared[:3, :3] *= 1.1
+    singular = CameraModel(K=np.zeros((3, 3)), dist=np.zeros(5), width=640, height=480)
+    bad = [
+        ((np.zeros((240, 320), np.uint8), CAMERA, pose), "mask: shape"),
+        ((mask.astype(np.float32), CAMERA, pose), "mask: expected dtype"),
+        ((mask, CAMERA, nan_pose), "T_WC: .*non-finite"),
+        ((mask, CAMERA, sheared), "T_WC: not a rigid transform"),
+        ((mask, CAMERA, pose[:3]), "T_WC: expected a finite 4x4"),
+        ((mask, singular, pose), "camera.K: singular"),
+        ((mask, dataclasses.replace(CAMERA, dist=np.array([np.inf, 0, 0, 0, 0])), pose), "camera.dist"),
+        ((mask, "camera", pose), "camera: expected"),
+    ]
+    for view, message in bad:
+        with pytest.raises(ValueError, match=message):
+            carver.add_view(*view)
+    assert carver.views_added == 0 and carver.occupancy.all()
+    with pytest.raises(ValueError, match="bounds"):
+        VoxelCarver((0, 0, 0), (0, 1, 1), 0.01)
+    with pytest.raises(ValueError, match="max_voxels"):
+        VoxelCarver((0, 0, 0), (10, 10, 10), 0.001)
+
+
+def temple_views():
+    views = []
+    for line in (TEMPLE / "templeSR_par.txt").read_text().split("\n")[1:]:
+        if not line.strip():
+            continue
+        name, *numbers = line.split()
+        values = np.array(numbers, dtype=float)
+        K, T_CW = values[:9].reshape(3, 3), np.eye(4)
+        T_CW[:3, :3], T_CW[:3, 3] = values[9:18].reshape(3, 3), values[18:21]
+        gray = cv2.cvtColor(cv2.imread(str(TEMPLE / name)), cv2.COLOR_BGR2GRAY)
+        # Near-black background: threshold, close small gaps, keep the largest blob (drops the cloth).
+        mask = cv2.morphologyEx((gray > 40).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask)
+        mask = (labels == 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])).astype(np.uint8)
+        camera = CameraModel(K=K, dist=np.zeros(5), width=gray.shape[1], height=gray.shape[0])
+        views.append((mask, camera, invert(T_CW)))
+    return views
+
+
+@pytest.mark.skipif(not TEMPLE.exists(), reason="Middlebury templeSparseRing not available")
+def test_temple_hull_lies_in_the_published_box_and_covers_every_silhouette():
+    box_lo, box_hi = np.array([-0.073568, 0.021728, -0.012445]), np.array([0.028855, 0.181892, 0.062736])
+    views = temple_views()
+    carver = carve(views, box_lo - 0.02, box_hi + 0.02, 0.001)
+    m = carver.metrics()
+    assert np.all(np.array(m.bounds_min) >= box_lo - 0.003) and np.all(np.array(m.bounds_max) <= box_hi + 0.003)
+    mesh = carver.to_mesh()
+    assert mesh.is_watertight
+    for mask, camera, T_WC in views:
+        uv, _ = camera.project_world(mesh.vertices, T_WC)
+        drawn = np.zeros_like(mask)
+        cv2.fillPoly(drawn, list(np.round(uv[mesh.faces] * 16).astype(np.int32)), 1, shift=4)
+        assert np.count_nonzero(drawn & mask) >= 0.97 * np.count_nonzero(mask)
