@@ -291,6 +291,29 @@ def test_walk_velocity_lags_the_command_and_is_clamped():
     assert not world.is_walking()
 
 
+def test_truth_walks_the_per_run_speed_scale_times_the_odometry():
+    world, clock = world_with_clock(seed=8)  # a seed whose forward scale is 0.91
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(20.0)
+    odom_distance = math.hypot(*world.odometry()[:2])
+    x0, y0, _ = world.start_pose
+    x, y, _ = world.true_pose()
+    slip = CONFIG.dynamics.slip_translation * math.sqrt(odom_distance)
+    assert math.hypot(x - x0, y - y0) == pytest.approx(world.speed_scale[0] * odom_distance, abs=4 * slip)
+    assert abs(world.speed_scale[0] - 1.0) > 4 * slip / odom_distance  # this seed's scale error is visible
+
+
+def test_walls_stop_the_body_but_not_the_odometry():
+    world, clock = world_with_clock()
+    world.teleport((2.0, 0.0, 0.0))
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(30.0)
+    half = CONFIG.room.half_size
+    assert world.true_pose()[0] <= half - 0.1
+    assert world.odometry()[0] > 2.5
+    world.render()  # the camera stays inside the room
+
+
 def test_omnidirectional_walk_moves_sideways_in_the_robot_frame():
     world, clock = world_with_clock()
     world.walk(0.0, 0.05, 0.0)
@@ -432,6 +455,19 @@ def test_a_run_is_deterministic_for_a_seed():
     np.testing.assert_array_equal(img_a, img_b)
     assert truth_a == truth_b
     assert truth_a["robot_pose"] != truth_c["robot_pose"]
+    assert not np.array_equal(img_a, img_c)
+
+
+def test_a_run_does_not_depend_on_how_often_the_world_is_polled():
+    def run(polls: int):
+        world, clock = world_with_clock(seed=9)
+        world.walk(0.08, 0.0, 0.3)
+        for _ in range(polls):
+            clock.advance(2.0 / polls)
+            world.odometry()
+        return world.true_pose(), world.odometry()
+
+    assert run(1) == run(400)
 
 
 # -- backend -----------------------------------------------------------------------------------
@@ -452,5 +488,20 @@ def test_sim_backend_paces_frames_and_reports_state_and_truth():
     assert truth["object"]["kind"] == "cylinder" and truth["object"]["radius"] == pytest.approx(0.055)
     backend.close()
     assert backend.grab_frame(timeout=1.0) is None
+    assert not backend.read_state().walking or world.velocity()[0] < 0.1  # close stopped the walk
     assert world.state().odom is not None and not backend.read_state().fallen
     backend.close()  # idempotent
+
+
+def test_close_wakes_a_waiting_grab_frame():
+    import threading
+
+    backend = SimBackend(SimWorld("can", ROBOT, "qvga", seed=1), fps=0.01)  # one frame per 100 s
+    backend.start()
+    assert backend.grab_frame(timeout=1.0) is not None
+    result = []
+    waiter = threading.Thread(target=lambda: result.append(backend.grab_frame(timeout=60.0)))
+    waiter.start()
+    backend.close()
+    waiter.join(timeout=10.0)
+    assert not waiter.is_alive() and result == [None]

@@ -14,7 +14,8 @@ timeline alone, not of how often it is queried). One step:
       delta_true = diag(s) u dt + n,   n_xy ~ N(0, sigma_t^2 |u_xy dt|),  n_theta ~ N(0, sigma_r^2 (|u_xy dt| + |omega dt|))
       delta_odom = u dt,               s ~ 1 + N(0, sigma_s^2) per axis, drawn once per run
 
-  each integrated at the mid-step heading: x += R(theta + dtheta / 2) delta_xy;
+  each integrated at the mid-step heading: x += R(theta + dtheta / 2) delta_xy; the walls stop the
+  true body ``BODY_RADIUS`` from them (no other collisions);
 * head joints move towards their targets at ``speed_fraction * max_speed`` each, then
   ``robot.head.clamp``;
 * torso sway while walking, of amplitude a = max(|v|/v_max, |vy|/vy_max, |omega|/omega_max) <= 1 and
@@ -43,6 +44,7 @@ from .render import Renderer
 from .scenarios import Scenario, SimConfig, load_sim_config
 
 Pose = Tuple[float, float, float]
+BODY_RADIUS = 0.15  # m, how close the robot's origin gets to a wall
 
 
 def _planar(x: float, y: float, theta: float) -> np.ndarray:
@@ -116,7 +118,9 @@ class SimWorld:
         self.start_pose = self._start_pose()
         self._clock = clock
         self._lock = threading.Lock()
-        self._time = clock()
+        self._start_time = clock()
+        self._steps = 0  # world time = start time + steps * dt
+        self._time = self._start_time
         self._pose = np.array(self.start_pose)
         self._odom = np.zeros(3)
         self._command = np.zeros(3)
@@ -145,13 +149,15 @@ class SimWorld:
     def _advance(self) -> None:
         """Step the world up to the clock (caller holds the lock)."""
         dt = self._dyn.timestep
-        steps = max(int((self._clock() - self._time) / dt), 0)
+        # the tolerance absorbs rounding in the clock's sums, so a step is never lost to polling
+        steps = max(math.floor((self._clock() - self._start_time) / dt + 1e-6) - self._steps, 0)
         if self._at_rest():  # nothing moves: only the battery drains, in one go
             self._battery = max(0.0, self._battery - steps * dt * self._dyn.battery_drain_idle)
         else:
             for _ in range(steps):
                 self._step(dt)
-        self._time += steps * dt
+        self._steps += steps
+        self._time = self._start_time + self._steps * dt
 
     def _at_rest(self) -> bool:
         return not (self._command.any() or self._velocity.any() or self._amplitude) and bool(
@@ -172,6 +178,8 @@ class SimWorld:
             true[:2] += self._rng.normal(0.0, dyn.slip_translation * math.sqrt(ds), 2)
             true[2] += self._rng.normal(0.0, dyn.slip_rotation * math.sqrt(ds + abs(nominal[2])))
             _integrate(self._pose, *true)
+            inside = self.config.room.half_size - BODY_RADIUS  # the walls stop the body; odometry walks on
+            self._pose[:2] = np.clip(self._pose[:2], -inside, inside)
             _integrate(self._odom, *nominal)
         limits = self.robot.walk
         self._amplitude = min(1.0, max(
