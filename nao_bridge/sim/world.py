@@ -45,6 +45,8 @@ from .scenarios import Scenario, SimConfig, load_sim_config
 
 Pose = Tuple[float, float, float]
 BODY_RADIUS = 0.15  # m, how close the robot's origin gets to a wall
+MOVING = 1e-3  # sway amplitude above which the robot counts as walking
+FACE_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # Ry(+90 deg): up becomes forward
 
 
 def _planar(x: float, y: float, theta: float) -> np.ndarray:
@@ -187,20 +189,20 @@ class SimWorld:
             abs(self._velocity[1]) / max(limits.vy_max, 1e-9),
             abs(self._velocity[2]) / max(limits.omega_max, 1e-9),
         ))
-        self._phase = math.remainder(self._phase + 2.0 * math.pi * dyn.sway.frequency * dt * (self._amplitude > 1e-3), 2.0 * math.pi)
+        walking = self._amplitude > MOVING
+        if walking:
+            self._phase = math.remainder(self._phase + 2.0 * math.pi * dyn.sway.frequency * dt, 2.0 * math.pi)
         step = self._head_speed * dt
         self._head += np.clip(self._head_target - self._head, -step, step)
         self._head[:] = self.robot.head.clamp(*self._head)
-        walking = self._amplitude > 1e-3
         self._battery = max(0.0, self._battery - dt * (dyn.battery_drain_idle + walking * dyn.battery_drain_walking))
 
     def _body(self, fraction: float) -> np.ndarray:
         """Torso motion applied to the head kinematics: the fall, else ``fraction`` of the sway."""
         if self._fallen:
             T = np.eye(4)
-            T[2, 3] = self._dyn.fallen_camera_height + self.robot.camera.offset[0]
-            c, s = 0.0, 1.0  # pitched forward by 90 degrees: up becomes forward
-            T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            T[:3, :3] = FACE_DOWN
+            T[2, 3] = self._dyn.fallen_camera_height + self.robot.camera.offset[0]  # camera at that height
             return T
         sway, a, phi = self._dyn.sway, self._amplitude * fraction, self._phase
         T = _rot_x(a * sway.roll * math.sin(phi))
@@ -301,7 +303,7 @@ class SimWorld:
             return self._walking()
 
     def _walking(self) -> bool:
-        return bool(self._command.any()) or self._amplitude > 1e-3
+        return bool(self._command.any()) or self._amplitude > MOVING
 
     def is_fallen(self) -> bool:
         with self._lock:
