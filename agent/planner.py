@@ -30,7 +30,10 @@ Optimizers (same cost, warm-started with the previous solution shifted by one st
   interpolation over the D steps (smooth perturbations: fewer samples explore long horizons), keep
   the E best, refit m, s; the batch also holds m itself and the best so far.
   The first batch also holds the warm start and the constant-turn sequences, so circling in either
-  direction is always considered.
+  direction is always considered. Then a polish: scipy's truncated Newton (TNC, bounds +-omega_max)
+  from the CEM's best for a few iterates, each iterate's cost and forward-difference gradient
+  g_i = (c(w) - c(w - h e_i)) / h costed in one batch of D + 1 candidates (h = 1e-6 rad/s); kept
+  only if it lowers the cost. CEM finds the basin, the polish its floor (where Nelder-Mead ends).
 
 Termination: coverage N_v/N_0 >= target and position and radius standard deviations below their
 thresholds ("complete"), or the elapsed time beyond the limit ("time_limit").
@@ -53,6 +56,7 @@ from nao_bridge.config import CONFIG_DIR, bounds, load
 from nao_bridge.robot_model import RobotModel, WalkLimits
 
 CLEARANCE_WEIGHT = 1e6
+FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,8 @@ class Weights:
 
 @dataclass(frozen=True)
 class CEMParams:
-    """Cross-entropy method: candidates per iteration, elites kept, iterations, initial and floor std (rad/s)."""
+    """Cross-entropy method: candidates per iteration, elites kept, iterations, initial and floor std (rad/s);
+    then a gradient polish of at most ``polish_calls`` batched calls (0: none)."""
 
     samples: int = field(metadata=bounds(4, 100000))
     elites: int = field(metadata=bounds(1, 100000))
@@ -76,6 +81,7 @@ class CEMParams:
     initial_std: float = field(metadata=bounds(1e-4, 10.0))
     min_std: float = field(metadata=bounds(0.0, 10.0))
     knots: int = field(metadata=bounds(2, 1000))  # perturbations are linear between this many knots
+    polish_calls: int = field(metadata=bounds(0, 1000))  # batched cost+gradient calls of the final TNC polish
 
     def __post_init__(self) -> None:
         if self.elites >= self.samples:
@@ -314,7 +320,33 @@ class Planner:
                 best, best_cost = samples[order[0]].copy(), costs[order[0]]
             elites = samples[order[: c.elites]]
             mean, std = elites.mean(axis=0), np.maximum(elites.std(axis=0), c.min_std)
-        return best, evaluations
+        if c.polish_calls == 0:
+            return best, evaluations
+        return self._polish(evaluate, best, best_cost, evaluations)
+
+    def _polish(self, evaluate, best: np.ndarray, best_cost: float, evaluations: int) -> Tuple[np.ndarray, int]:
+        """Polish the CEM's ``best`` with scipy's truncated Newton (TNC, bounds +-omega_max), each iterate's
+        cost and forward-difference gradient costed in one batch of D + 1 candidates."""
+        limit, D = self.omega_max, len(best)
+        probes = FD_STEP * np.vstack([np.zeros(D), -np.eye(D)])  # backward steps stay within the bounds
+        calls = 0
+
+        def cost_and_gradient(w: np.ndarray) -> Tuple[float, np.ndarray]:
+            nonlocal calls
+            calls += 1
+            costs, _ = evaluate(np.clip(w, -limit, limit) + probes)
+            return float(costs[0]), (costs[0] - costs[1:]) / FD_STEP
+
+        result = minimize(
+            cost_and_gradient,
+            best,
+            jac=True,
+            method="TNC",
+            bounds=[(-limit, limit)] * D,
+            options={"maxfun": self.params.cem.polish_calls},
+        )
+        evaluations += calls * (D + 1)
+        return (np.clip(result.x, -limit, limit), evaluations) if result.fun < best_cost else (best, evaluations)
 
     def _nelder_mead(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
         D, limit = self.params.horizon, self.omega_max
