@@ -505,3 +505,33 @@ def test_close_wakes_a_waiting_grab_frame():
     backend.close()
     waiter.join(timeout=10.0)
     assert not waiter.is_alive() and result == [None]
+
+
+def test_concurrent_commands_readings_and_renders_are_safe():
+    import threading
+
+    world = SimWorld("figure", ROBOT, "qvga", seed=5)
+    errors = []
+
+    def hammer(action):
+        try:
+            for i in range(40):
+                action(i)
+        except Exception as exc:  # noqa: BLE001 - collected and reported by the assertion below
+            errors.append(exc)
+
+    actions = [
+        lambda i: world.walk(0.05 * (i % 3), 0.01, 0.1 * ((i % 5) - 2)),
+        lambda i: world.set_head(0.3 * ((i % 7) - 3), 0.1, 0.5),
+        lambda i: world.state(),
+        lambda i: world.render(),
+        lambda i: json.dumps(world.truth()),
+    ]
+    threads = [threading.Thread(target=hammer, args=(a,)) for a in actions]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60.0)
+    assert not errors and not any(t.is_alive() for t in threads)
+    state = world.state()
+    assert ROBOT.head.clamp(state.head_yaw, state.head_pitch) == pytest.approx((state.head_yaw, state.head_pitch))
