@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -98,7 +99,8 @@ def test_object_silhouette_matches_projection_of_its_parts(scenario):
     expected = np.zeros(mask.shape, np.uint8)
     for part in world.scenario.parts:
         uv = project(part.world_points(world.scenario.position, world.scenario.yaw), T_WC, "vga")
-        cv2.fillConvexPoly(expected, np.round(cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2) * 16).astype(np.int32), 1, shift=4)
+        hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+        cv2.fillConvexPoly(expected, np.round(hull * 16).astype(np.int32), 1, shift=4)
     expected = expected.astype(bool)
     iou = (mask & expected).sum() / (mask | expected).sum()
     assert iou > 0.95, iou
@@ -535,3 +537,11 @@ def test_concurrent_commands_readings_and_renders_are_safe():
     assert not errors and not any(t.is_alive() for t in threads)
     state = world.state()
     assert ROBOT.head.clamp(state.head_yaw, state.head_pitch) == pytest.approx((state.head_yaw, state.head_pitch))
+
+
+def test_a_landmark_colour_the_simulator_cannot_draw_is_named(tmp_path):
+    bad = tmp_path / "room.yaml"
+    bad.write_text("landmarks:\n  - {id: x, kind: color, color: ochre, position: [1, 0, 0.3]}\n")
+    config = dataclasses.replace(CONFIG, landmarks=str(bad))  # an absolute path wins over CONFIG_DIR
+    with pytest.raises(ValueError, match="landmark 'x': the simulator has no colour 'ochre'"):
+        SimWorld("can", ROBOT, config=config)

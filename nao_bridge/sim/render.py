@@ -283,7 +283,8 @@ class Renderer:
                 self._items.append(_MarkerBoard.build(lm))
             else:
                 if lm.color not in COLOURS_BGR:
-                    raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {sorted(COLOURS_BGR)}")
+                    known = sorted(COLOURS_BGR)
+                    raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {known}")
                 self._items.append(_ColourDisc(lm, COLOURS_BGR[lm.color]))
         self._centres = np.array([item.centre for item in self._items])
         self._frustum = _frustum_normals(intrinsics)

@@ -132,7 +132,7 @@ class Noise:
 
 @dataclass(frozen=True)
 class SimConfig:
-    landmarks: str  # landmark map, relative to config/
+    landmarks: str  # landmark map: relative to config/, or an absolute path
     fps: float = field(metadata=bounds(0.1, 120.0))
     room: Room
     dynamics: Dynamics
