@@ -1,7 +1,8 @@
 """Reconstruction-oriented receding-horizon planner (the paper's Sec. III-B, corrected, and fast).
 
 Decision: the angular velocities w = (omega_{t+1}, ..., omega_{t+D}), |omega_k| <= omega_max, walked
-at constant speed v for one period tau each (:mod:`agent.motion`). Expected cost (DESIGN.md item 7:
+at constant speed v for one period tau each (:mod:`agent.motion`). With ``omnidirectional`` on, w also
+holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO walks sideways). Expected cost (DESIGN.md item 7:
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 
@@ -18,9 +19,12 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
     c_r  coverage      "corrected": 1 - N_v / N_0;   "paper": N_v / N_0 (minimizing it avoids coverage)
                        N_v: bins seen over the executed path and the horizon (:mod:`agent.coverage`)
     c_d  distance      "standoff": ((d - d_min) / d_min)^2;   "paper": d_min / d,   d = |o - p_{t+D}|
-    c_clear            hard clearance: W_clear sum_k max(0, r + clearance - |o - p_k|)^2 over the
+    c_clear            hard clearance: W_clear sum_k max(0, r + clearance + m_k - |o - p_k|)^2 over the
                        horizon, W_clear = 1e6, so any sequence keeping the clearance beats any that
-                       breaks it, and when none can, the least violating one wins.
+                       breaks it, and when none can, the least violating one wins. m_k is the
+                       uncertainty margin: k sigma of the distance to the surface s = |o - p| - r,
+                       m_k = min(k sqrt(g_k^T P g_k), m_max), g_k = ds/d(o, r) = (u_k, -1),
+                       u_k = (o - p_k) / |o - p_k| (current P: where the true object may be now).
 
 Optimizers (same cost, warm-started with the previous solution shifted by one step):
 
@@ -111,6 +115,9 @@ class PlannerParams:
     horizon: int = field(metadata=bounds(1, 200))  # D steps
     d_min: float = field(metadata=bounds(0.05, 20.0))  # comfortable distance to the centre, m
     clearance: float = field(metadata=bounds(0.0, 10.0))  # never closer to the estimated surface, m
+    clearance_sigmas: float = field(metadata=bounds(0.0, 100.0))  # k: margin of k sigma of the surface distance
+    clearance_margin_max: float = field(metadata=bounds(0.0, 10.0))  # m_max: the margin's cap, m
+    omnidirectional: bool  # also choose a lateral speed v_y per plan (unicycle when false)
     max_range: float = field(metadata=bounds(0.1, 100.0))  # the object is measurable up to this distance, m
     uncertainty_form: Literal["relative", "paper"]
     view_form: Literal["reachable", "paper"]
@@ -164,9 +171,22 @@ def effort_cost(omegas: np.ndarray) -> np.ndarray:
     return np.sum(np.square(omegas), axis=-1)
 
 
-def clearance_cost(distances: np.ndarray, radius: float, clearance: float) -> np.ndarray:
-    """W_clear sum_k max(0, r + clearance - d_k)^2 over the horizon (last axis)."""
-    return CLEARANCE_WEIGHT * np.sum(np.square(np.maximum(radius + clearance - distances, 0.0)), axis=-1)
+def clearance_margin(
+    positions: np.ndarray, x: np.ndarray, P: np.ndarray, sigmas: float, cap: float
+) -> np.ndarray:
+    """m = min(k sqrt(g^T P g), m_max) for robot positions (..., 2), g = (u, -1), u the unit vector to o."""
+    dx, dy = x[0] - positions[..., 0], x[1] - positions[..., 1]
+    d = np.maximum(np.hypot(dx, dy), 1e-9)
+    ux, uy = dx / d, dy / d
+    variance = (
+        ux * ux * P[0, 0] + 2.0 * ux * uy * P[0, 1] + uy * uy * P[1, 1] - 2.0 * (ux * P[0, 2] + uy * P[1, 2]) + P[2, 2]
+    )
+    return np.minimum(sigmas * np.sqrt(np.maximum(variance, 0.0)), cap)
+
+
+def clearance_cost(distances: np.ndarray, radius: float, clearance: float, margin=0.0) -> np.ndarray:
+    """W_clear sum_k max(0, r + clearance + m_k - d_k)^2 over the horizon (last axis)."""
+    return CLEARANCE_WEIGHT * np.sum(np.square(np.maximum(radius + clearance + margin - distances, 0.0)), axis=-1)
 
 
 # --- planner ------------------------------------------------------------------------------------
@@ -181,6 +201,8 @@ class Plan:
     cost: float
     terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, clearance
     evaluations: int  # candidate sequences whose cost was computed
+    lateral_speed: float = 0.0  # v_y over the horizon, m/s (0 unless omnidirectional)
+    clearance_margin: float = 0.0  # the uncertainty margin m at the robot's next position, m
 
 
 def termination_reason(
@@ -226,6 +248,10 @@ class Planner:
         self._Q_step = None if ekf is None else ekf.Q(params.period)
         self._rng = np.random.default_rng(seed)
         self._previous: Optional[np.ndarray] = None
+        # bounds of the decision w = (omega_1 .. omega_D[, v_y])
+        self._limits = np.full(params.horizon, walk_limits.omega_max)
+        if params.omnidirectional:
+            self._limits = np.append(self._limits, walk_limits.vy_max)
 
     @classmethod
     def for_robot(
@@ -247,12 +273,13 @@ class Planner:
     def cost_function(
         self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray
     ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
-        """The batched cost w (K, D) -> (total (K,), weighted terms) for this replan's belief."""
+        """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief."""
         p, w = self.params, self.params.weights
         target = x[:2]
 
-        def evaluate(omegas: np.ndarray) -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
-            poses = rollout_poses(robot_pose, omegas, p.speed, p.period)  # (K, D, 3)
+        def evaluate(decisions: np.ndarray) -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
+            omegas, lateral = self._split(decisions)
+            poses = rollout_poses(robot_pose, omegas, p.speed, p.period, lateral[:, None])  # (K, D, 3)
             cams = camera_poses(poses, target, self.head_yaw_limits, self.camera_offset)
             visible = object_in_view(x, cams, self.hfov, p.max_range)
             P_end = rollout_covariance(x, P, cams, visible, self._Q_step, R=self._R)
@@ -265,14 +292,16 @@ class Planner:
                 "coverage": w.coverage * coverage_cost(n_seen, p.coverage.bins, p.coverage_form),
                 "distance": w.distance * distance_cost(dist[:, -1], p.d_min, p.distance_form),
                 "effort": w.effort * effort_cost(omegas),
-                "clearance": clearance_cost(dist, x[2], p.clearance),
+                "clearance": clearance_cost(
+                    dist, x[2], p.clearance, clearance_margin(poses, x, P, p.clearance_sigmas, p.clearance_margin_max)
+                ),
             }
             return sum(terms.values()), terms
 
         return evaluate
 
     def plan(self, robot_pose, x, P, coverage: Coverage) -> Plan:
-        """Choose the next D angular velocities for the robot at ``robot_pose`` and the belief (x, P)."""
+        """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P)."""
         robot_pose = _checked("robot_pose", robot_pose, (3,))
         x = _checked("x", x, (3,))
         P = _checked("P", P, (3, 3))
@@ -283,31 +312,46 @@ class Planner:
         best, evaluations = optimize(evaluate, self._warm_start())
         total, terms = evaluate(best[None])
         self._previous = best
-        v, vy, omega = self.walk_limits.clamp(self.params.speed, 0.0, float(best[0]))
+        omegas, lateral = self._split(best[None])
+        v, vy, omega = self.walk_limits.clamp(self.params.speed, float(lateral[0]), float(omegas[0, 0]))
+        first = rollout_poses(robot_pose, omegas[:, :1], v, self.params.period, vy)[0, 0]
+        p = self.params
         return Plan(
-            omegas=best,
+            omegas=omegas[0],
             command=(v, vy, omega),
             cost=float(total[0]),
             terms={k: float(t[0]) for k, t in terms.items()},
             evaluations=evaluations,
+            lateral_speed=vy,
+            clearance_margin=float(clearance_margin(first, x, P, p.clearance_sigmas, p.clearance_margin_max)),
         )
 
-    def _warm_start(self) -> np.ndarray:
+    def _split(self, decisions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Decisions (K, D[+1]) -> omegas (K, D) and lateral speeds (K,)."""
         D = self.params.horizon
-        if self._previous is None or self._previous.shape != (D,):
-            return np.zeros(D)
-        return np.append(self._previous[1:], self._previous[-1])
+        lateral = decisions[:, D] if self.params.omnidirectional else np.zeros(len(decisions))
+        return decisions[:, :D], lateral
+
+    def _warm_start(self) -> np.ndarray:
+        if self._previous is None or self._previous.shape != self._limits.shape:
+            return np.zeros_like(self._limits)
+        D = self.params.horizon
+        return np.concatenate([self._previous[1:D], self._previous[D - 1 :]])  # shifted, last omega repeated
 
     def _cem(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
-        c, D, limit = self.params.cem, self.params.horizon, self.omega_max
+        c, D, limits = self.params.cem, self.params.horizon, self._limits
         knots = np.linspace(0.0, D - 1.0, min(D, c.knots))
         basis = np.stack([np.interp(np.arange(D), knots, row) for row in np.eye(len(knots))])  # (knots, D)
-        turns = np.linspace(-limit, limit, 5)[:, None] * np.ones(D)
-        mean, std = warm.copy(), np.full(D, c.initial_std)
+        if self.params.omnidirectional:  # v_y: one more independent coordinate
+            basis = np.block([[basis, np.zeros((len(knots), 1))], [np.zeros((1, D)), np.ones((1, 1))]])
+        scale = limits / self.omega_max  # std in the units of each coordinate
+        turns = np.zeros((5, len(limits)))
+        turns[:, :D] = np.linspace(-self.omega_max, self.omega_max, 5)[:, None]
+        mean, std = warm.copy(), c.initial_std * scale
         best, best_cost, evaluations = warm, math.inf, 0
         for iteration in range(c.iterations):
-            noise = self._rng.standard_normal((c.samples, len(knots))) @ basis  # smooth in time
-            samples = np.clip(mean + std * noise, -limit, limit)
+            noise = self._rng.standard_normal((c.samples, len(basis))) @ basis  # smooth in time
+            samples = np.clip(mean + std * noise, -limits, limits)
             samples[0] = mean
             if iteration == 0:
                 samples[1 : 1 + len(turns)] = turns
@@ -319,22 +363,22 @@ class Planner:
             if costs[order[0]] < best_cost:
                 best, best_cost = samples[order[0]].copy(), costs[order[0]]
             elites = samples[order[: c.elites]]
-            mean, std = elites.mean(axis=0), np.maximum(elites.std(axis=0), c.min_std)
+            mean, std = elites.mean(axis=0), np.maximum(elites.std(axis=0), c.min_std * scale)
         if c.polish_calls == 0:
             return best, evaluations
         return self._polish(evaluate, best, best_cost, evaluations)
 
     def _polish(self, evaluate, best: np.ndarray, best_cost: float, evaluations: int) -> Tuple[np.ndarray, int]:
-        """Polish the CEM's ``best`` with scipy's truncated Newton (TNC, bounds +-omega_max), each iterate's
-        cost and forward-difference gradient costed in one batch of D + 1 candidates."""
-        limit, D = self.omega_max, len(best)
-        probes = FD_STEP * np.vstack([np.zeros(D), -np.eye(D)])  # backward steps stay within the bounds
+        """Polish the CEM's ``best`` with scipy's truncated Newton (TNC, within the bounds), each iterate's
+        cost and forward-difference gradient costed in one batch of len(w) + 1 candidates."""
+        limits, n = self._limits, len(best)
+        probes = FD_STEP * np.vstack([np.zeros(n), -np.eye(n)])
         calls = 0
 
         def cost_and_gradient(w: np.ndarray) -> Tuple[float, np.ndarray]:
             nonlocal calls
             calls += 1
-            costs, _ = evaluate(np.clip(w, -limit, limit) + probes)
+            costs, _ = evaluate(np.clip(w, -limits, limits) + probes)
             return float(costs[0]), (costs[0] - costs[1:]) / FD_STEP
 
         result = minimize(
@@ -342,24 +386,24 @@ class Planner:
             best,
             jac=True,
             method="TNC",
-            bounds=[(-limit, limit)] * D,
+            bounds=list(zip(-limits, limits)),
             options={"maxfun": self.params.cem.polish_calls},
         )
-        evaluations += calls * (D + 1)
-        return (np.clip(result.x, -limit, limit), evaluations) if result.fun < best_cost else (best, evaluations)
+        evaluations += calls * (n + 1)
+        return (np.clip(result.x, -limits, limits), evaluations) if result.fun < best_cost else (best, evaluations)
 
     def _nelder_mead(self, evaluate, warm: np.ndarray) -> Tuple[np.ndarray, int]:
-        D, limit = self.params.horizon, self.omega_max
-        step = 0.25 * limit * np.where(warm > 0.0, -1.0, 1.0)  # initial simplex edges pointing inward
+        limits = self._limits
+        step = 0.25 * limits * np.where(warm > 0.0, -1.0, 1.0)  # initial simplex edges pointing inward
         simplex = np.vstack([warm, warm + np.diag(step)])
         result = minimize(
             lambda w: float(evaluate(np.asarray(w)[None])[0][0]),
             warm,
             method="Nelder-Mead",
-            bounds=[(-limit, limit)] * D,
+            bounds=list(zip(-limits, limits)),
             options={"initial_simplex": simplex},
         )
-        return np.clip(result.x, -limit, limit), int(result.nfev)
+        return np.clip(result.x, -limits, limits), int(result.nfev)
 
 
 def _checked(name: str, value, shape: Tuple[int, ...]) -> np.ndarray:

@@ -8,8 +8,8 @@ Each control period k:
    (phi, delta) = h(x_true, c_k) + n,  n ~ N(0, diag(sigma_phi^2, sigma_delta^2)), and initialize or
    predict(tau) + update the EKF;
 3. record c_k for coverage, check termination (:func:`agent.planner.termination_reason`);
-4. pick omega_k: the planner (active) or a circle-following law around the first estimate (passive),
-   clamp it to the walk limits, walk one period.
+4. pick the command (v, v_y, omega_k): the planner (active) or a circle-following law around the first
+   estimate (passive), clamp it to the walk limits, walk one period.
 
 Passive circle law (a vector field converging to the circle of radius d_min around the centre g,
 travelled counter-clockwise)::
@@ -155,14 +155,15 @@ def simulate(
                 hist["commands"].append(np.zeros(3))
                 break
         if not ekf.initialized:
-            omega = 0.0
+            command = robot.walk.clamp(p.speed, 0.0, 0.0)
         elif policy == "circle":
             omega = circle_omega(pose, first_estimate, p.d_min, p.speed, p.period, robot.walk.omega_max)
+            command = robot.walk.clamp(p.speed, 0.0, omega)
         else:
             plan = planner.plan(pose, ekf.x, ekf.P, coverage)
             terms.append(plan.terms)
-            omega = plan.command[2]
-        command = np.array(robot.walk.clamp(p.speed, 0.0, omega))
+            command = robot.walk.clamp(*plan.command)
+        command = np.array(command)
         hist["commands"].append(command)
         pose = rollout_poses(pose, command[2:], command[0], p.period, command[1])[0]
     return SimResult(

@@ -15,6 +15,7 @@ from agent.planner import (
     CLEARANCE_WEIGHT,
     Planner,
     clearance_cost,
+    clearance_margin,
     coverage_cost,
     distance_cost,
     effort_cost,
@@ -104,6 +105,21 @@ def test_effort_and_clearance_costs():
     assert clearance_cost(np.array([1.0, 0.36]), 0.1, 0.25) == 0.0
 
 
+def test_clearance_margin_is_k_sigma_of_the_distance_to_the_surface():
+    P = np.diag([0.1, 0.2, 0.05]) ** 2
+    robot = np.array([[0.0, 0.0], [1.0, -1.0]])  # object at (1, 0): seen along +x, then along +y
+    x = np.array([1.0, 0.0, 0.1])
+    margin = clearance_margin(robot, x, P, sigmas=3.0, cap=10.0)
+    np.testing.assert_allclose(margin, 3.0 * np.sqrt([0.1**2 + 0.05**2, 0.2**2 + 0.05**2]))
+    # Centre and radius errors that move the surface together cancel: s = d - r barely changes.
+    correlated = P.copy()
+    correlated[0, 2] = correlated[2, 0] = 0.9 * 0.1 * 0.05
+    assert clearance_margin(robot[:1], x, correlated, 3.0, 10.0)[0] == pytest.approx(3.0 * math.sqrt(0.01 + 0.0025 - 0.009))
+    assert clearance_margin(robot, x, P, 3.0, cap=0.4).tolist() == [pytest.approx(0.3354, abs=1e-4), 0.4]
+    # The margin adds to the clearance: r + clearance + m = 0.5 m here, the 0.45 m step violates by 0.05 m.
+    assert clearance_cost(np.array([1.0, 0.45]), 0.1, 0.25, np.array([0.15, 0.15])) == pytest.approx(CLEARANCE_WEIGHT * 0.05**2)
+
+
 def test_termination_reasons():
     small = np.diag([0.001, 0.001, 0.001]) ** 2
     params = PARAMS.termination
@@ -141,6 +157,39 @@ def test_plan_turns_away_rather_than_break_the_clearance():
     path = rollout_poses(np.zeros(3), plan.omegas, PARAMS.speed, PARAMS.period)
     assert np.min(np.hypot(*(x[:2] - path[:, :2]).T)) >= x[2] + PARAMS.clearance
     assert plan.terms["clearance"] == 0.0
+
+
+def test_a_poor_estimate_keeps_the_uncertainty_margin():
+    # An estimate 1.2 m ahead with 15 cm position and 5 cm radius std: 3 sigma along the line of sight is
+    # about 0.47 m, so the plan must stay r + clearance + 0.47 = 0.82 m from the estimated centre, although
+    # d_min (0.5 m) and the uncertainty term pull it in. Without the margin it does go closer.
+    x, P = np.array([1.2, 0.0, 0.1]), np.diag([0.15, 0.15, 0.05]) ** 2
+    coverage = Coverage(PARAMS.coverage, HFOV)
+    closest = {}
+    for sigmas in (3.0, 0.0):
+        plan = make_planner(d_min=0.5, clearance_sigmas=sigmas).plan(np.zeros(3), x, P, coverage)
+        path = rollout_poses(np.zeros(3), plan.omegas, PARAMS.speed, PARAMS.period)
+        margin = clearance_margin(path, x, P, sigmas, PARAMS.clearance_margin_max)
+        assert np.all(np.hypot(*(x[:2] - path[:, :2]).T) >= x[2] + PARAMS.clearance + margin - 1e-3)
+        closest[sigmas] = np.min(np.hypot(*(x[:2] - path[:, :2]).T))
+    assert plan.clearance_margin == 0.0
+    assert closest[3.0] >= 0.1 + 0.25 + 0.47 and closest[0.0] < 0.1 + 0.25 + 0.3
+
+
+def test_omnidirectional_plan_chooses_a_lateral_speed_within_limits():
+    planner = make_planner(omnidirectional=True)
+    x, P = np.array([0.4, 0.5, 0.1]), np.diag([0.01, 0.01, 0.01]) ** 2  # object ahead to the left, 0.64 m away
+    evaluate = planner.cost_function(np.zeros(3), x, P, np.zeros(PARAMS.coverage.bins, dtype=bool))
+    toward, away = np.zeros((2, PARAMS.horizon + 1))
+    toward[-1], away[-1] = ROBOT.walk.vy_max, -ROBOT.walk.vy_max
+    clearance = evaluate(np.stack([toward, away]))[1]["clearance"]
+    assert clearance[0] > 0.0 and clearance[1] == 0.0  # the lateral speed moves the predicted robot
+    plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
+    v, vy, omega = plan.command
+    assert plan.omegas.shape == (PARAMS.horizon,) and vy == plan.lateral_speed and abs(vy) <= ROBOT.walk.vy_max
+    path = rollout_poses(np.zeros(3), plan.omegas, v, PARAMS.period, vy)
+    assert np.min(np.hypot(*(x[:2] - path[:, :2]).T)) >= x[2] + PARAMS.clearance
+    assert make_planner(omnidirectional=False).plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV)).command[1] == 0.0
 
 
 def test_nelder_mead_and_cem_optimize_the_same_cost():

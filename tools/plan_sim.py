@@ -6,9 +6,10 @@
 Figures: the corrected cost from one start for two values of d_min (the paper's Fig. 4): path,
 measured bearing rays, 2-sigma position ellipses of the estimate, true object. Table: over N
 seeds (:func:`agent.sim2d.random_scenario`), a passive circle at d_min around the first estimate,
-the paper's cost as printed and the corrected cost (all with the CEM optimizer), scored against
-the true object: final centre and radius errors, runs that saw every bin, steps to full coverage,
-closest approach to the true surface.
+the paper's cost as printed, the corrected cost on the unicycle and with the lateral speed
+(``omnidirectional``), all with the CEM optimizer, scored against the true object: final centre and
+radius errors, runs that saw every bin, steps and path length to full coverage, closest approach
+to the true surface.
 """
 
 from __future__ import annotations
@@ -95,12 +96,14 @@ def score(results: List[SimResult], clearance: float) -> Dict[str, str]:
     radius = np.array([1000 * r.final_errors()[1] for r in results])
     steps = [r.steps_to_full_coverage() for r in results]
     reached = [s for s in steps if s is not None]
+    paths = [r.path_length[s] for r, s in zip(results, steps) if s is not None]
     closest = [float(np.min(np.hypot(*(r.poses[:, :2] - r.truth[:2]).T) - r.truth[2])) for r in results]
     return {
         "centre error mm, median / 90 %": f"{np.median(centre):.1f} / {np.percentile(centre, 90):.1f}",
         "radius error mm, median / 90 %": f"{np.median(radius):.1f} / {np.percentile(radius, 90):.1f}",
         "runs with full coverage": f"{len(reached)} / {len(results)}",
         "steps to full coverage, median (max)": f"{np.median(reached):.0f} ({max(reached)})" if reached else "never",
+        "path to full coverage m, median": f"{np.median(paths):.2f}" if paths else "never",
         f"closest to the surface m, min (clearance {clearance})": f"{min(closest):.2f}",
         "runs ended 'complete'": f"{sum(r.reason.startswith('complete') for r in results)} / {len(results)}",
     }
@@ -111,7 +114,8 @@ def comparison(params: PlannerParams, robot: SimRobot, seeds: int) -> str:
     variants = {
         "passive circle (initial guess)": (params, "circle"),
         "paper's cost as printed": (dataclasses.replace(params, **PAPER_FORMS), "planner"),
-        "corrected cost": (params, "planner"),
+        "corrected cost": (dataclasses.replace(params, omnidirectional=False), "planner"),
+        "corrected cost, omnidirectional": (dataclasses.replace(params, omnidirectional=True), "planner"),
     }
     columns = {}
     for name, (variant, policy) in variants.items():
