@@ -3,7 +3,10 @@
 Practice (DESIGN.md, checked with eclipse-zenoh 1.10): peer mode on every side, multicast and gossip
 scouting off, explicit listen (bridge) and connect (station, viewer) endpoints, and a short link
 lease (1.5 s, 4 keep-alives per lease) so that a frozen peer is noticed within the lease (its
-liveliness tokens then disappear). ``insert_json5`` takes JSON5 literals, hence ``json.dumps``.
+liveliness tokens then disappear). Shared-memory transport is off: frames are small, and with it
+on every closed session to a peer on the same host left that peer's segment mapped (one file
+descriptor leaked per station session, found by tests/test_soak.py). ``insert_json5`` takes JSON5
+literals, hence ``json.dumps``.
 
 Plain mode (``tcp/`` endpoints, no authentication) is the default. Secure mode, for a shared lab
 network (docs/security.md), adds up to three layers:
@@ -140,6 +143,7 @@ def zenoh_config(options: TransportConfig) -> zenoh.Config:
         "connect/endpoints": list(options.connect),
         "transport/link/tx/lease": options.lease_ms,
         "transport/link/tx/keep_alive": options.keep_alive,
+        "transport/shared_memory/enabled": False,
     }
     if options.tls is not None:
         tls = options.tls
