@@ -250,6 +250,16 @@ def test_active_loop_localizes_and_covers_within_limits(seed):
     assert np.all(np.abs(omega) <= ROBOT.walk.omega_max)
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_omnidirectional_loop_localizes_and_covers_within_limits(seed):
+    truth, start = random_scenario(seed)
+    result = simulate(truth, start, dataclasses.replace(PARAMS, omnidirectional=True), EKF, ROBOT, seed)
+    assert result.reason.startswith("complete") and result.final_errors()[0] < 0.01
+    assert np.min(np.hypot(*(result.poses[:, :2] - truth[:2]).T) - truth[2]) >= PARAMS.clearance - 0.02
+    vy = result.commands[:, 1]
+    assert np.all(np.abs(vy) <= ROBOT.walk.vy_max) and np.any(np.abs(vy) > 0.01)  # it does walk sideways
+
+
 def test_simulation_is_deterministic_for_a_seed():
     truth, start = random_scenario(3)
     a, b = (simulate(truth, start, PARAMS, EKF, ROBOT, seed=7, max_steps=15) for _ in range(2))
