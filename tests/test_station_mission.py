@@ -121,6 +121,43 @@ def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission):
     assert report["ok"] and report["decisions"] > 100 and report["divergence"] is None
 
 
+def tampered_copy(src: Path, dst: Path, topic: str, rank: int) -> None:
+    """Copy an MCAP log, changing the walk command of the ``rank``-th message on ``topic``."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f_in, open(dst, "wb") as f_out:
+        writer = Writer(f_out)
+        writer.start()
+        schemas, channels, seen = {}, {}, 0
+        for schema, channel, message in make_reader(f_in).iter_messages(log_time_order=False):
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
+            data = message.data
+            if channel.topic == topic:
+                if seen == rank:
+                    payload = json.loads(data)
+                    payload["walk"] = [0.5, 0.0, 0.5]
+                    data = json.dumps(payload, separators=(",", ":")).encode()
+                seen += 1
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        writer.finish()
+
+
+def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
+    from station.replay import replay
+
+    run, _, _ = sim_mission
+    tampered = tmp_path / "tampered.mcap"
+    tampered_copy(run / "run.mcap", tampered, DECISION, 40)
+    result = replay(tampered)
+    assert not result.ok
+    assert (result.divergence.topic, result.divergence.rank) == (DECISION, 40)
+    assert '"walk":[0.5,0.0,0.5]' in result.divergence.recorded
+
+
 def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission, tmp_path):
     run, _, _ = sim_mission
     result = json.loads((run / "result.json").read_text())
