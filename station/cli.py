@@ -2,6 +2,7 @@
 
     station start --robot HOST | --robot sim | --naoqi HOST   [--config FILE ...] [--out DIR]
                   [--max-duration S] [--scenario can|remote|figure] [--seed N] [--resolution qvga|vga]
+                  [--secure CERT_DIR]
     station replay LOG.mcap
     station carve LOG.mcap -o model.ply [--resolution M] [--tolerance K]
     station report LOG.mcap [-o DIR]
@@ -27,6 +28,7 @@ import yaml
 
 from agent.mesh import save_mesh
 from nao_bridge.config import ConfigError, main_error
+from nao_bridge.transport import TransportConfig
 from station.config import StationConfig, load_station_config
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable
@@ -68,6 +70,8 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     start.add_argument("--scenario", default="can", help="simulated object (with --robot sim): can, remote, figure")
     start.add_argument("--seed", type=int, default=0, help="simulator seed (with --robot sim)")
     start.add_argument("--resolution", help="camera resolution of a bridge the station starts (qvga, vga)")
+    start.add_argument("--secure", metavar="CERT_DIR", help="mutual TLS with the lab certificates (docs/security.md); "
+                       "a bridge the station starts gets the same option")
 
     rep = sub.add_parser("replay", help="re-run the agent on a log and compare its decisions")
     rep.add_argument("log", type=Path)
@@ -136,7 +140,7 @@ def start(args: argparse.Namespace) -> int:
             bridge = LocalBridge(_bridge_args(args, config, resolution, out), out / "bridge.log")
             endpoint = bridge.endpoint
         print(f"station: connecting to the bridge at {endpoint}", file=sys.stderr)
-        link = BridgeLink(endpoint, config.station.robot_name, config.station.lease_ms)
+        link = BridgeLink(_transport(args, config, endpoint), config.station.robot_name)
         info, info_bytes = link.fetch_info(config.station.bridge_timeout)
         link.start()
         if args.resolution and info.resolution != args.resolution:
@@ -161,6 +165,13 @@ def start(args: argparse.Namespace) -> int:
     return _outputs(summary, out, resolution)
 
 
+def _transport(args: argparse.Namespace, config: StationConfig, endpoint: str) -> TransportConfig:
+    name, lease = config.station.robot_name, config.station.lease_ms
+    if args.secure:
+        return TransportConfig.secure("station", args.secure, robot=name, connect=(endpoint,), lease_ms=lease)
+    return TransportConfig(connect=(endpoint,), lease_ms=lease, robot=name)
+
+
 def _bridge_args(args: argparse.Namespace, config: StationConfig, resolution: str, out: Path) -> List[str]:
     bridge: dict = {"name": config.station.robot_name, "resolution": resolution}
     if config.robot_overrides:
@@ -169,7 +180,8 @@ def _bridge_args(args: argparse.Namespace, config: StationConfig, resolution: st
     override.write_text(yaml.safe_dump({"bridge": bridge}))
     backend = ["--sim", "--scenario", args.scenario, "--seed", str(args.seed)] if args.robot == SIM else \
         ["--naoqi", args.naoqi if "://" in args.naoqi else f"tcp://{args.naoqi}:{NAOQI_PORT}"]
-    return [*backend, "--config", str(override)]
+    secure = ["--secure", args.secure] if args.secure else []
+    return [*backend, *secure, "--config", str(override)]
 
 
 def _outputs(summary: RunSummary, out: Path, resolution: str) -> int:

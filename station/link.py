@@ -35,13 +35,14 @@ class BridgeUnavailable(RuntimeError):
 
 
 class BridgeLink:
-    def __init__(self, endpoint: str, robot_name: str, lease_ms: int):
-        self.endpoint = endpoint
+    def __init__(self, transport: TransportConfig, robot_name: str):
+        """``transport``: connect endpoint(s), lease, and for a lab network TLS (``TransportConfig.secure``)."""
+        self.endpoint = ", ".join(transport.connect)
         self.keys = RobotKeys(robot_name)
         try:
-            self.session = open_session(TransportConfig(connect=(endpoint,), lease_ms=lease_ms))
+            self.session = open_session(transport)
         except zenoh.ZError as exc:
-            raise BridgeUnavailable(f"cannot open a Zenoh session to {endpoint}: {exc}") from None
+            raise BridgeUnavailable(f"cannot open a Zenoh session to {self.endpoint}: {exc}") from None
         self.inbox: "queue.Queue[Received]" = queue.Queue()
         self._frame_lock = threading.Lock()
         self._frames: List[Received] = []  # arrived since the last take_frames()

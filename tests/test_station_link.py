@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 
 import pytest
 
 from nao_bridge.protocol import Info, State, decode, decode_frame
+from nao_bridge.transport import TransportConfig
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable
+
+
+def plain(endpoint: str) -> TransportConfig:
+    return TransportConfig(connect=(endpoint,), lease_ms=1000)
 
 
 def wait_for(predicate, timeout: float, step: float = 0.05):
@@ -30,7 +37,7 @@ def bridge(tmp_path):
 
 
 def test_info_frames_state_commands_and_bridge_lost(bridge, tmp_path):
-    link = BridgeLink(bridge.endpoint, "nao", lease_ms=1000)
+    link = BridgeLink(plain(bridge.endpoint), "nao")
     try:
         info, raw = link.fetch_info(timeout=20.0)
         assert isinstance(info, Info) and info.backend == "sim" and info.resolution == "qvga"
@@ -56,7 +63,7 @@ def test_info_frames_state_commands_and_bridge_lost(bridge, tmp_path):
 
 
 def test_close_terminates_the_bridge(bridge):
-    link = BridgeLink(bridge.endpoint, "nao", lease_ms=1000)
+    link = BridgeLink(plain(bridge.endpoint), "nao")
     link.fetch_info(timeout=20.0)  # up and serving (its signal handlers installed)
     link.close()
     assert bridge.exit_code() is None
@@ -65,7 +72,7 @@ def test_close_terminates_the_bridge(bridge):
 
 
 def test_no_bridge_is_a_clear_error():
-    link = BridgeLink("tcp/127.0.0.1:9", "nao", lease_ms=1000)
+    link = BridgeLink(plain("tcp/127.0.0.1:9"), "nao")
     try:
         with pytest.raises(BridgeUnavailable, match="no info from the bridge at tcp/127.0.0.1:9"):
             link.fetch_info(timeout=1.0)
@@ -87,3 +94,24 @@ def _any_state(link: BridgeLink, predicate) -> bool:
         if event.kind == "state" and predicate(decode(event.payload, State)):
             return True
     return False
+
+
+def test_secure_bridge_talks_to_the_station_certificate_only(tmp_path):
+    certs = tmp_path / "certs"
+    subprocess.run([sys.executable, "-m", "tools.make_certs", "--out", str(certs)], check=True, capture_output=True)
+    local = LocalBridge(["--sim", "--secure", str(certs)], tmp_path / "bridge.log")
+    try:
+        secure = BridgeLink(TransportConfig.secure("station", certs, connect=(local.endpoint,), lease_ms=1000), "nao")
+        try:
+            info, _ = secure.fetch_info(timeout=20.0)
+            assert info.backend == "sim"
+        finally:
+            secure.close()
+        intruder = BridgeLink(plain(local.endpoint), "nao")
+        try:
+            with pytest.raises(BridgeUnavailable):
+                intruder.fetch_info(timeout=2.0)
+        finally:
+            intruder.close()
+    finally:
+        local.close()

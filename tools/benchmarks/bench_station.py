@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nao_bridge.transport import TransportConfig
 from station.config import load_station_config
 from station.launch import LocalBridge
 from station.link import BridgeLink
@@ -32,7 +33,8 @@ def measure(duration: float = DURATION, resolution: str = "vga") -> dict:
         out = Path(tmp)
         (out / "bridge.yaml").write_text(f"bridge:\n  resolution: {resolution}\n  fps: 15.0\n")
         bridge = LocalBridge(["--sim", "--scenario", "can", "--config", str(out / "bridge.yaml")], out / "bridge.log")
-        link = BridgeLink(bridge.endpoint, config.station.robot_name, config.station.lease_ms)
+        transport = TransportConfig(connect=(bridge.endpoint,), lease_ms=config.station.lease_ms)
+        link = BridgeLink(transport, config.station.robot_name)
         try:
             info, info_bytes = link.fetch_info(config.station.bridge_timeout)
             link.start()
