@@ -2,7 +2,9 @@
 
 The grid is sampled at voxel centres ``x_ijk = origin + pitch * (i, j, k)``. The occupancy (1 inside,
 0 outside) is padded by one empty voxel on every side so the 0.5 iso-surface always closes, then
-scikit-image's marching cubes (Lewiner) extracts it; vertices map back to the world by
+scikit-image's classic (Lorensen) marching cubes extracts it: on binary grids its surface is
+watertight, where the Lewiner variant leaves non-manifold edges where voxels touch diagonally
+(tests/test_carving.py checks both facts). Vertices map back to the world by
 
     x = origin + pitch * (v - 1)        (v in padded index coordinates)
 
@@ -28,7 +30,7 @@ def occupancy_to_mesh(occupancy: np.ndarray, origin: np.ndarray, pitch: float) -
     if not occupancy.any():
         return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64))
     padded = np.pad(occupancy.astype(np.float32), 1)
-    verts, faces, _, _ = marching_cubes(padded, level=0.5, allow_degenerate=False)
+    verts, faces, _, _ = marching_cubes(padded, level=0.5, method="lorensen")
     verts = np.asarray(origin, dtype=np.float64) + pitch * (verts.astype(np.float64) - 1.0)
     # skimage orients faces towards increasing values (inwards here): flip them outwards.
     return trimesh.Trimesh(vertices=verts, faces=faces[:, ::-1], process=True)

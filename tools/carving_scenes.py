@@ -3,7 +3,7 @@
 A silhouette pixel is on iff the ray through its centre (lens distortion removed) meets the shape
 in front of the camera; the analytic visual hull of a set of views is the set of points whose ray
 from each camera centre meets the shape (a point projecting outside an image is not constrained by
-that view, as in the carver). Ray tests, with d a unit direction from the camera centre o:
+that view, as in the carver; here every view sees the whole volume). Ray tests, with d a unit direction from the camera centre o:
 
 * sphere (c, R): with t* = (c - o) . d, hit iff |c - o|^2 - t*^2 <= R^2 and t* + sqrt(R^2 - ...) > 0;
 * box and vertical cylinder: intersect the ray's parameter intervals (slabs; the circle in xy and
@@ -145,15 +145,16 @@ def render_mask(shape, camera: CameraModel, T_WC: np.ndarray, box: Tuple[Sequenc
     return mask
 
 
-def analytic_hull(shape, views: Sequence[Tuple[np.ndarray, CameraModel, np.ndarray]], points: np.ndarray) -> np.ndarray:
-    """Which ``points`` (N x 3) lie in every view's silhouette cone (or outside its image)."""
+def analytic_hull(
+    shape, views: Sequence[Tuple[np.ndarray, CameraModel, np.ndarray]], points: np.ndarray, chunk: int = 65536
+) -> np.ndarray:
+    """Which ``points`` (N x 3) lie in every view's silhouette cone; every view must see all of them."""
     keep = np.ones(len(points), dtype=bool)
-    for _, camera, T_WC in views:
-        uv, in_front = camera.project_world(points, T_WC)
-        with np.errstate(invalid="ignore"):
-            in_image = in_front & (uv[:, 0] >= -0.5) & (uv[:, 0] < camera.width - 0.5)
-            in_image &= (uv[:, 1] >= -0.5) & (uv[:, 1] < camera.height - 0.5)
-        rays = points - T_WC[:3, 3]
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        keep &= ~in_image | shape.hit(np.broadcast_to(T_WC[:3, 3], rays.shape), rays)
+    for start in range(0, len(points), chunk):  # chunks keep the temporaries in cache
+        part = points[start : start + chunk]
+        inside = keep[start : start + chunk]
+        for _, _, T_WC in views:
+            rays = part - T_WC[:3, 3]
+            rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+            inside &= shape.hit(np.broadcast_to(T_WC[:3, 3], rays.shape), rays)
     return keep
