@@ -126,6 +126,16 @@ def _cameras(s: RunSeries, mesh):
         c, z = T[:3, 3], T[:3, 2]
         ax.quiver(*c, *(0.15 * z), color="tab:green", linewidth=0.8)
         ax.scatter(*c, color="tab:green", s=6)
+    points = [np.asarray(k["T_WC"]).reshape(4, 4)[:3, 3] for k in s.keyframes]
+    if mesh is not None and len(mesh.faces):
+        points += list(mesh.vertices)
+    if points:  # metric axes: equal scale on x, y, z
+        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+        centre, half = 0.5 * (lo + hi), 0.5 * max(float(np.max(hi - lo)), 0.1)
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(0.0, half)
+        ax.set_box_aspect((1, 1, 0.5))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
