@@ -85,11 +85,12 @@ def run() -> str:
 Nelder-Mead: scipy.optimize.minimize(method="Nelder-Mead"), bounds at +-omega_max, initial simplex
 edges 0.25 omega_max, scipy's default stopping rules (up to 200 D iterations). CEM: one batched
 rollout of all candidates per iteration, then a TNC polish on batched finite-difference gradients
-(config `cem`; "no polish": the CEM alone, as before). "vs NM" is the median and the largest over states of the relative cost difference to
-Nelder-Mead's, "<= NM" the states where the cost is not above Nelder-Mead's, "costed" the candidate
-sequences evaluated per replan. Wall and CPU (process) time per replan: the 2 cores were shared with
-several other engineers' jobs (load average 4 to 7), so wall times are noisy and inflated, and CPU
-times are inflated too (cache and core sharing); compare rows of one run.
+(config `cem`); "cem, no polish" is the CEM alone. "vs NM" is the median and the largest over the
+states of the relative cost difference to Nelder-Mead's, "<= NM" the states where the cost is not
+above Nelder-Mead's, "costed" the candidate sequences evaluated per replan (median). Wall and CPU
+(process) time per replan: the 2 cores were shared with several other engineers' jobs, so wall
+times are noisy and inflated, and CPU times are inflated too (shared caches and cores); compare the
+rows of one run.
 
 Command: `.venv/bin/python -m tools.bench --only planner`
 
