@@ -219,8 +219,10 @@ class VoxelCarver:
         self._dims = np.array([[n >> level for n in padded] for level in range(self._levels + 1)], dtype=np.int64)
         sizes = [int(np.prod(d)) if level else 0 for level, d in enumerate(self._dims)]
         self._offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        living = self._counts <= params.tolerance
-        self._alive = np.concatenate([np.zeros(0, bool)] + [_pool_any(living, 1 << level).ravel() for level in range(1, self._levels + 1)])
+        pyramid = [self._counts <= params.tolerance]
+        for _ in range(self._levels):
+            pyramid.append(_pool_any(pyramid[-1], 2))
+        self._alive = np.concatenate([np.zeros(0, bool)] + [level.ravel() for level in pyramid[1:]])
 
     @classmethod
     def from_estimate(
