@@ -67,7 +67,7 @@ class MissionParams:
     search_max_turns: float = field(default=1.25, metadata=bounds(0.0, 10.0))
     object_lost_timeout: float = field(default=6.0, metadata=bounds(0.1, 600.0))
     landmarks_lost_timeout: float = field(default=10.0, metadata=bounds(0.1, 600.0))
-    stop_timeout: float = field(default=2.0, metadata=bounds(0.0, 60.0))
+    stop_timeout: float = field(default=4.0, metadata=bounds(0.0, 60.0))
 
     @property
     def search_turn_duration(self) -> float:
