@@ -1,0 +1,360 @@
+"""Robot pose (x, y, theta) from known landmarks in the top camera, carried by odometry between fixes.
+
+Landmark points (image u_i <-> world X_i):
+
+* ArUco markers (``cv2.aruco.ArucoDetector``, sub-pixel corners): the four corners of each marker of
+  the map, in ``Landmark.aruco_corners()`` order.
+* Colour markers: centroids of the blobs of each colour class. Colours repeat, so a blob is
+  associated with the landmark of its colour whose projection from the pose prior is nearest,
+  within ``color_gate`` pixels, and only when no other landmark of that colour is within the gate
+  (ambiguous blobs and doubly claimed landmarks are dropped). Without a prior, only colours that
+  occur once in the map and once in the image are used.
+
+Camera pose: T_CW from ``cv2.solvePnPRansac`` (SQPnP hypotheses) when there are >= ``ransac_min_points``
+points, else ``cv2.solvePnP`` (SQPnP); with the camera-in-robot transform at capture time,
+
+    T_WB = T_WC T_BC^-1,  T_WC = T_CW^-1                                   (DESIGN.md point 8)
+
+and its planar part p = (x, y, theta) seeds a Gauss-Newton refinement of the 3-DOF planar pose on
+the inliers (the robot stands on the floor: height, roll and pitch come from the kinematics):
+
+    min_p sum_i || u_i - pi(K, T_BC^-1 T_WB(p)^-1 X_i) ||^2,   R_fix = s^2 (J^T J)^-1,
+    s^2 = max(sigma_px^2, rms^2).
+
+Gates: the 6-DOF solution's base must be upright (|z|, roll, pitch of T_WB small: rejects mirror
+solutions); reprojection RMS <= ``max_reprojection_px``; a jump from the prior larger than
+``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is rejected, unless
+``max_rejected_jumps`` fixes in a row disagree with the prior (then the prior is wrong: re-localize).
+
+Odometry: the pose is W <- odometry-frame correction C composed with the odometry pose,
+p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |dtheta|) grows
+
+    P <- F P F^T + G Q G^T,  Q = diag(k_t^2 l, k_t^2 l, k_r^2 (l + |dtheta|)),
+
+and a fix is fused as a Kalman update with identity measurement: K = P (P + R)^-1,
+p <- p + K wrap(z - p), P <- (I - K) P, then C = p (-) o_capture.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from agent.camera import CameraModel, invert, planar_pose, planar_transform, wrap_angle
+from agent.perception import PerceptionParams, check_image, color_blobs
+from nao_bridge.config import bounds
+from nao_bridge.landmark_map import Landmark, LandmarkMap
+
+Pose = Tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class LocalizationParams:
+    """PnP, gates and odometry noise (config/localization.yaml, section ``localization``)."""
+
+    pnp_method: Literal["sqpnp", "iterative", "epnp"]
+    ransac_min_points: int = field(metadata=bounds(4, 1000))  # use RANSAC from this many points
+    ransac_reprojection_px: float = field(metadata=bounds(0.1, 50.0))  # RANSAC inlier threshold, px
+    min_points: int = field(metadata=bounds(4, 1000))  # fewer landmark points -> no fix
+    max_reprojection_px: float = field(metadata=bounds(0.01, 50.0))  # RMS gate on the final fit, px
+    pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
+    max_tilt: float = field(metadata=bounds(0.0, 1.0))  # rad, roll/pitch of T_WB from the 6-DOF solution
+    max_height: float = field(metadata=bounds(0.0, 1.0))  # m, |z| of T_WB from the 6-DOF solution
+    jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
+    jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
+    max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
+    color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
+    odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
+    odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
+    aruco_corner_refinement: Literal["none", "subpix", "contour"]
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    """A robot pose measured from landmarks in one frame (before fusion with the prior)."""
+
+    pose: Pose
+    covariance: np.ndarray  # 3 x 3, of (x, y, theta)
+    rms_px: float  # reprojection RMS of the inliers
+    landmark_ids: Tuple[object, ...]
+    points: int  # inlier points used
+    T_WC: np.ndarray  # camera pose of the 6-DOF PnP solution
+
+
+_CORNER_REFINEMENT = {
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+}
+_PNP_FLAGS = {"sqpnp": cv2.SOLVEPNP_SQPNP, "iterative": cv2.SOLVEPNP_ITERATIVE, "epnp": cv2.SOLVEPNP_EPNP}
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """a (+) b: pose b expressed in frame a, as a pose in a's parent frame."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])
+
+
+def relative(a: Pose, b: Pose) -> Pose:
+    """(-a) (+) b: pose b seen from pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])
+
+
+class LandmarkDetector:
+    """Image points of the map's landmarks in one frame: ArUco corners and associated colour blobs."""
+
+    def __init__(self, params: LocalizationParams, landmark_map: LandmarkMap, perception: Optional[PerceptionParams]):
+        self.params = params
+        self.perception = perception
+        self.aruco: Dict[str, Dict[int, np.ndarray]] = {}
+        for lm in landmark_map.of_kind("aruco"):
+            self.aruco.setdefault(str(lm.dictionary), {})[int(lm.id)] = lm.aruco_corners()
+        detector_params = cv2.aruco.DetectorParameters()
+        detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
+        self.detectors = {
+            name: cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), detector_params)
+            for name in self.aruco
+        }
+        self.colors: Dict[str, List[Landmark]] = {}
+        if perception is not None:
+            for lm in landmark_map.of_kind("color"):
+                if lm.color not in perception.colors:
+                    raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class")
+                self.colors.setdefault(str(lm.color), []).append(lm)
+
+    def aruco_points(self, gray: np.ndarray) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
+        ids_out: List[object] = []
+        world: List[np.ndarray] = []
+        image: List[np.ndarray] = []
+        for name, detector in self.detectors.items():
+            corners, ids, _ = detector.detectMarkers(gray)
+            if ids is None:
+                continue
+            known = self.aruco[name]
+            for c, marker_id in zip(corners, ids.ravel()):
+                if int(marker_id) in known:
+                    ids_out.append(int(marker_id))
+                    world.append(known[int(marker_id)])
+                    image.append(c.reshape(4, 2))
+        return ids_out, world, image
+
+    def color_points(
+        self, image_bgr: np.ndarray, camera: CameraModel, T_WC_prior: Optional[np.ndarray]
+    ) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
+        if not self.colors:
+            return [], [], []
+        assert self.perception is not None
+        hsv = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2HSV)
+        ids: List[object] = []
+        world: List[np.ndarray] = []
+        image: List[np.ndarray] = []
+        for name, landmarks in self.colors.items():
+            _, _, centroids, kept = color_blobs(hsv, self.perception.colors[name], self.perception, self.perception.landmark_min_area)
+            blobs = centroids[kept]
+            for lm, uv in self._associate(landmarks, blobs, camera, T_WC_prior):
+                ids.append(lm.id)
+                world.append(np.asarray(lm.position, dtype=float).reshape(1, 3))
+                image.append(uv.reshape(1, 2))
+        return ids, world, image
+
+    def _associate(self, landmarks: List[Landmark], blobs: np.ndarray, camera: CameraModel, T_WC: Optional[np.ndarray]):
+        """(landmark, blob centroid) pairs that are unambiguous under the prior's projections."""
+        if len(blobs) == 0:
+            return []
+        if T_WC is None:
+            return [(landmarks[0], blobs[0])] if len(landmarks) == 1 and len(blobs) == 1 else []
+        predicted, in_front = camera.project_world(np.array([lm.position for lm in landmarks]), T_WC)
+        gate = self.params.color_gate
+        distances = np.linalg.norm(blobs[:, None, :] - predicted[None, :, :], axis=2)
+        distances[:, ~in_front] = np.inf
+        within = distances <= gate
+        pairs = []
+        for b in range(len(blobs)):
+            candidates = np.flatnonzero(within[b])
+            # Unambiguous: one landmark within the gate of this blob, and this blob the only one near it.
+            if len(candidates) == 1 and within[:, candidates[0]].sum() == 1:
+                pairs.append((landmarks[candidates[0]], blobs[b]))
+        return pairs
+
+
+class RobotLocalizer:
+    """Landmark fixes fused with odometry; ``pose`` is None until the first fix."""
+
+    def __init__(
+        self,
+        params: LocalizationParams,
+        landmark_map: LandmarkMap,
+        camera: CameraModel,
+        perception_params: Optional[PerceptionParams] = None,
+    ):
+        self.params = params
+        self.camera = camera
+        self.detector = LandmarkDetector(params, landmark_map, perception_params)
+        self._correction: Optional[Pose] = None  # W <- odometry frame
+        self._odom: Optional[Pose] = None
+        self._stamp = -math.inf
+        self.covariance = np.full((3, 3), np.nan)
+        self.rejected_jumps = 0
+
+    @property
+    def pose(self) -> Optional[Pose]:
+        """Latest (x, y, theta) in W, or None before the first fix."""
+        if self._correction is None or self._odom is None:
+            return None
+        return compose(self._correction, self._odom)
+
+    def pose_at(self, odom: Pose) -> Optional[Pose]:
+        """The pose at the time the odometry read ``odom`` (e.g. a frame's capture)."""
+        return None if self._correction is None else compose(self._correction, tuple(map(float, odom)))
+
+    def on_odometry(self, odom: Pose, stamp: float) -> None:
+        """Carry the pose with a newer odometry reading; its covariance grows with the motion."""
+        odom = _check_pose(odom, "odom")
+        if stamp < self._stamp:
+            return
+        if self._odom is not None and self._correction is not None:
+            dx, dy, dtheta = relative(self._odom, odom)
+            heading = compose(self._correction, self._odom)[2]
+            c, s = math.cos(heading), math.sin(heading)
+            step_W = np.array([c * dx - s * dy, s * dx + c * dy])
+            F = np.array([[1.0, 0.0, -step_W[1]], [0.0, 1.0, step_W[0]], [0.0, 0.0, 1.0]])
+            G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            length = math.hypot(dx, dy)
+            kt, kr = self.params.odom_translation_noise, self.params.odom_rotation_noise
+            Q = np.diag([kt**2 * length, kt**2 * length, kr**2 * (length + abs(dtheta))])
+            self.covariance = F @ self.covariance @ F.T + G @ Q @ G.T
+        self._odom, self._stamp = odom, stamp
+
+    def on_frame(self, image: np.ndarray, T_BC: np.ndarray, odom: Pose, stamp: float) -> Optional[PoseFix]:
+        """A landmark fix from a frame (fused into the pose), or None when it gave none.
+
+        Raises ``ImageError`` on a garbage image and ``ValueError`` on a malformed T_BC or odometry.
+        """
+        image = check_image(image, (self.camera.width, self.camera.height))
+        T_BC = np.asarray(T_BC, dtype=float)
+        if T_BC.shape != (4, 4) or not np.all(np.isfinite(T_BC)):
+            raise ValueError(f"T_BC must be a finite 4 x 4 transform, got shape {T_BC.shape}")
+        odom = _check_pose(odom, "odom")
+        self.on_odometry(odom, stamp)
+        prior = self.pose_at(odom)
+        fix = self.measure(image, T_BC, prior)
+        if fix is None:
+            return None
+        if prior is not None and not self._accept_jump(prior, fix):
+            return None
+        self._fuse(fix, prior, odom)
+        return fix
+
+    def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None) -> Optional[PoseFix]:
+        """The pose fix of one frame on its own (no jump gate, no fusion), or None."""
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        T_WC_prior = None if prior is None else planar_transform(*prior) @ T_BC
+        ids, world, pixels = self.detector.aruco_points(gray)
+        c_ids, c_world, c_pixels = self.detector.color_points(image, self.camera, T_WC_prior)
+        ids, world, pixels = ids + c_ids, world + c_world, pixels + c_pixels
+        if not world:
+            return None
+        X = np.vstack(world).astype(np.float64)
+        u = np.vstack(pixels).astype(np.float64)
+        if len(X) < self.params.min_points:
+            return None
+        T_CW, inliers = self._solve_pnp(X, u)
+        if T_CW is None:
+            return None
+        T_WC = invert(T_CW)
+        T_WB = T_WC @ invert(T_BC)
+        if abs(T_WB[2, 3]) > self.params.max_height or math.acos(min(1.0, T_WB[2, 2])) > self.params.max_tilt:
+            return None
+        pose, rms, J = self._refine_planar(planar_pose(T_WB), T_BC, X[inliers], u[inliers])
+        if rms > self.params.max_reprojection_px:
+            return None
+        scale = max(self.params.pixel_sigma, rms) ** 2
+        try:
+            covariance = scale * np.linalg.inv(J.T @ J)
+        except np.linalg.LinAlgError:
+            return None
+        return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=tuple(ids), points=int(len(inliers)), T_WC=T_WC)
+
+    def _solve_pnp(self, X: np.ndarray, u: np.ndarray) -> Tuple[Optional[np.ndarray], np.ndarray]:
+        K, dist = self.camera.K, self.camera.dist
+        flag = _PNP_FLAGS[self.params.pnp_method]
+        if len(X) >= self.params.ransac_min_points:
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+                X, u, K, dist, reprojectionError=self.params.ransac_reprojection_px, flags=flag, iterationsCount=100
+            )
+            if not ok or inliers is None or len(inliers) < self.params.min_points:
+                return None, np.empty(0, dtype=int)
+            idx = inliers.ravel()
+            rvec, tvec = cv2.solvePnPRefineLM(X[idx], u[idx], K, dist, rvec, tvec)
+        else:
+            ok, rvec, tvec = cv2.solvePnP(X, u, K, dist, flags=flag)
+            if not ok:
+                return None, np.empty(0, dtype=int)
+            idx = np.arange(len(X))
+        T_CW = np.eye(4)
+        T_CW[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_CW[:3, 3] = tvec.ravel()
+        return T_CW, idx
+
+    def _residuals(self, pose: np.ndarray, T_CB: np.ndarray, X: np.ndarray, u: np.ndarray) -> np.ndarray:
+        T_CW = T_CB @ invert(planar_transform(*pose))
+        X_C = X @ T_CW[:3, :3].T + T_CW[:3, 3]
+        return (self.camera.project(X_C) - u).ravel()
+
+    def _refine_planar(self, pose: Pose, T_BC: np.ndarray, X: np.ndarray, u: np.ndarray, iterations: int = 5):
+        """Gauss-Newton on (x, y, theta) with a forward-difference Jacobian; returns (pose, rms, J)."""
+        T_CB = invert(T_BC)
+        p = np.array(pose, dtype=float)
+        steps = np.array([1e-6, 1e-6, 1e-6])
+        for _ in range(iterations):
+            r = self._residuals(p, T_CB, X, u)
+            J = np.column_stack([(self._residuals(p + np.eye(3)[k] * steps[k], T_CB, X, u) - r) / steps[k] for k in range(3)])
+            dp = np.linalg.lstsq(J, -r, rcond=None)[0]
+            p += dp
+            if np.linalg.norm(dp) < 1e-9:
+                break
+        r = self._residuals(p, T_CB, X, u)
+        rms = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2.0))
+        return (float(p[0]), float(p[1]), wrap_angle(float(p[2]))), rms, J
+
+    def _accept_jump(self, prior: Pose, fix: PoseFix) -> bool:
+        diff = np.array([fix.pose[0] - prior[0], fix.pose[1] - prior[1], wrap_angle(fix.pose[2] - prior[2])])
+        std = np.sqrt(np.diag(self.covariance + fix.covariance))
+        floor = np.array([self.params.jump_floor[0], self.params.jump_floor[0], self.params.jump_floor[1]])
+        if np.all(np.abs(diff) <= self.params.jump_sigmas * std + floor):
+            self.rejected_jumps = 0
+            return True
+        self.rejected_jumps += 1
+        if self.rejected_jumps >= self.params.max_rejected_jumps:
+            self.rejected_jumps = 0
+            self._correction = None  # the prior is wrong: restart from this fix
+            return True
+        return False
+
+    def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
+        if self._correction is None or prior is None:
+            pose, P = np.array(fix.pose), fix.covariance
+        else:
+            K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
+            innovation = np.array([fix.pose[0] - prior[0], fix.pose[1] - prior[1], wrap_angle(fix.pose[2] - prior[2])])
+            pose = np.array(prior) + K @ innovation
+            P = (np.eye(3) - K) @ self.covariance
+        self.covariance = 0.5 * (P + P.T)
+        fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
+        self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
+
+
+def _check_pose(pose: object, name: str) -> Pose:
+    try:
+        values = tuple(float(v) for v in pose)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be (x, y, theta), got {pose!r}") from None
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} must be three finite numbers (x, y, theta), got {pose!r}")
+    return values  # type: ignore[return-value]

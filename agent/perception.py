@@ -1,0 +1,243 @@
+"""Object silhouette and its bearing/width measurement from one top-camera frame.
+
+Segmentation (per colour class, OpenCV HSV: H in [0, 180), S, V in [0, 255])::
+
+    M = [h_lo <= H <= h_hi] & [S in s] & [V in v]          (h_lo > h_hi wraps: H >= h_lo or H <= h_hi)
+    M <- close(open(M, disc(r_open)), disc(r_close))         (drop speckle, fill pinholes)
+
+The object is one 8-connected component of M with area >= min_area: the largest, or the one whose
+centroid is nearest a predicted pixel. Its mask (0/255) is what the carver intersects.
+
+Measurement (DESIGN.md section 2). For every image row v of the silhouette, the outer edge of its
+leftmost and rightmost pixels, (u_min(v) - 1/2, v) and (u_max(v) + 1/2, v) (a pixel's centre is at
+integer u, so its outer edge is half a pixel further out), is back-projected (distortion removed),
+rotated into W with T_WC and reduced to a horizontal azimuth a(v). For a vertical cylinder the
+left/right outline rows lie in the two vertical tangent planes, so
+
+    a_l = mean{ a_left(v)  : a_left(v)  >= max_v a_left  - band },
+    a_r = mean{ a_right(v) : a_right(v) <= min_v a_right + band },   band = one pixel's angle,
+
+averages out the +-1/2 pixel quantization along the slanted outline, and
+delta = a_l - a_r, azimuth_W = (a_l + a_r) / 2, phi = wrap(azimuth_W - psi(T_WC)).
+A silhouette within ``border_margin`` of the left or right border is cut by the image: it gives
+a bearing (that of the visible part) and no width, never a wrong one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Literal, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from agent.camera import CameraModel, optical_axis_heading, ray_azimuths, wrap_angle
+from nao_bridge.config import bounds
+
+MIN_IMAGE_SIDE = 16  # px: anything smaller is not a camera frame
+
+
+class ImageError(ValueError):
+    """The input is not a usable camera image (the message says what is wrong)."""
+
+
+@dataclass(frozen=True)
+class ColorClass:
+    """An HSV box in OpenCV units; ``hue[0] > hue[1]`` wraps through 0 (red)."""
+
+    hue: Tuple[int, int] = field(metadata=bounds(0, 179))
+    saturation: Tuple[int, int] = field(metadata=bounds(0, 255))
+    value: Tuple[int, int] = field(metadata=bounds(0, 255))
+
+
+@dataclass(frozen=True)
+class PerceptionParams:
+    """Colour classes, morphology and component choice (config/perception.yaml, section ``perception``)."""
+
+    colors: Dict[str, ColorClass]
+    object_color: str
+    open_radius: int = field(metadata=bounds(0, 20))  # px, 0 = no opening
+    close_radius: int = field(metadata=bounds(0, 20))  # px, 0 = no closing
+    min_area: int = field(metadata=bounds(1, 10**7))  # px, smallest object silhouette
+    landmark_min_area: int = field(metadata=bounds(1, 10**7))  # px, smallest colour-landmark blob
+    component: Literal["largest", "nearest"]  # "nearest" needs a predicted pixel, else largest
+    border_margin: int = field(metadata=bounds(0, 100))  # px from the left/right border that cut the width
+    edge_band: float = field(metadata=bounds(0.0, 10.0))  # tangent-row band, in pixels' angles
+    aim_height: float = field(metadata=bounds(0.0, 2.0))  # m, head servo aims at this height on the object
+    servo_gain: float = field(metadata=bounds(0.0, 1.0))  # weight of the measured centroid in the head target
+    search_pitch: float = field(metadata=bounds(-1.0, 1.0))  # rad, head pitch when there is no estimate yet
+
+    def __post_init__(self) -> None:
+        if self.object_color not in self.colors:
+            raise ValueError(f"object_color {self.object_color!r} is not a colour class ({sorted(self.colors)})")
+
+
+@dataclass(frozen=True)
+class Silhouette:
+    """One connected component of a colour class. Pixel coordinates are (u, v) = (column, row)."""
+
+    mask: np.ndarray  # uint8 H x W, 255 on the component, 0 elsewhere
+    bbox: Tuple[int, int, int, int]  # x, y, width, height
+    area: int  # px
+    centroid: Tuple[float, float]  # (u, v)
+    left_px: Tuple[int, int]  # leftmost outline pixel (u, v) (median row among ties)
+    right_px: Tuple[int, int]  # rightmost outline pixel (u, v)
+    touches_left: bool  # within border_margin of the left border: the width is not observable
+    touches_right: bool
+    touches_top: bool  # informative only: a cut top or bottom does not bias a cylinder's width
+    touches_bottom: bool
+
+    @property
+    def width_valid(self) -> bool:
+        return not (self.touches_left or self.touches_right)
+
+
+@dataclass(frozen=True)
+class ObjectMeasurement:
+    """Bearing and apparent width of the object in one frame (DESIGN.md section 2)."""
+
+    azimuth: float  # world azimuth of the centre, rad
+    phi: float  # bearing relative to the optical-axis heading, rad
+    delta: Optional[float]  # apparent width, rad; None when the silhouette is cut by a side border
+    a_left: float  # world azimuths of the two tangent planes, rad
+    a_right: float
+
+
+def check_image(image: object, size: Optional[Tuple[int, int]] = None) -> np.ndarray:
+    """The image as an H x W x 3 uint8 array, or ``ImageError`` saying what is wrong with it.
+
+    ``size`` = (width, height) the frame must have (the camera's), if given.
+    """
+    if not isinstance(image, np.ndarray):
+        raise ImageError(f"expected an image as a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise ImageError(f"expected a uint8 image, got dtype {image.dtype}")
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ImageError(f"expected an H x W x 3 BGR image, got shape {image.shape}")
+    h, w = image.shape[:2]
+    if min(h, w) < MIN_IMAGE_SIDE:
+        raise ImageError(f"image of {w} x {h} px is too small (each side >= {MIN_IMAGE_SIDE} px)")
+    if size is not None and (w, h) != tuple(size):
+        raise ImageError(f"image is {w} x {h} px, the camera's is {size[0]} x {size[1]}")
+    return image
+
+
+def color_mask(hsv: np.ndarray, color: ColorClass) -> np.ndarray:
+    """Binary mask (0/255) of the pixels of an HSV image inside a colour class."""
+    (h_lo, h_hi), (s_lo, s_hi), (v_lo, v_hi) = color.hue, color.saturation, color.value
+    if h_lo <= h_hi:
+        return cv2.inRange(hsv, (h_lo, s_lo, v_lo), (h_hi, s_hi, v_hi))
+    return cv2.inRange(hsv, (h_lo, s_lo, v_lo), (179, s_hi, v_hi)) | cv2.inRange(hsv, (0, s_lo, v_lo), (h_hi, s_hi, v_hi))
+
+
+def _disc(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def clean_mask(mask: np.ndarray, params: PerceptionParams) -> np.ndarray:
+    """Morphological opening then closing with discs of the configured radii."""
+    if params.open_radius > 0:
+        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _disc(params.open_radius))
+    if params.close_radius > 0:
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _disc(params.close_radius))
+    return mask
+
+
+def color_blobs(hsv: np.ndarray, color: ColorClass, params: PerceptionParams, min_area: int):
+    """Connected components of a cleaned colour mask with area >= min_area.
+
+    Returns (labels, stats, centroids, kept label indices) as ``cv2.connectedComponentsWithStats``.
+    """
+    mask = clean_mask(color_mask(hsv, color), params)
+    _, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    kept = [i for i in range(1, stats.shape[0]) if stats[i, cv2.CC_STAT_AREA] >= min_area]
+    return labels, stats, centroids, kept
+
+
+def extract_silhouette(
+    image_bgr: np.ndarray,
+    params: PerceptionParams,
+    predicted_uv: Optional[Tuple[float, float]] = None,
+    color: Optional[str] = None,
+    size: Optional[Tuple[int, int]] = None,
+) -> Optional[Silhouette]:
+    """The object's silhouette in a BGR frame, or None when no component is large enough.
+
+    ``color`` defaults to ``params.object_color``; ``predicted_uv`` picks the component nearest it
+    when ``params.component`` is "nearest"; ``size`` = (width, height) the frame must have.
+    Raises ``ImageError`` on anything that is not an H x W x 3 uint8 image.
+    """
+    image = check_image(image_bgr, size)
+    name = params.object_color if color is None else color
+    if name not in params.colors:
+        raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
+    hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV)
+    labels, stats, centroids, kept = color_blobs(hsv, params.colors[name], params, params.min_area)
+    if not kept:
+        return None
+    if params.component == "nearest" and predicted_uv is not None:
+        target = np.asarray(predicted_uv, dtype=float)
+        best = min(kept, key=lambda i: float(np.hypot(*(centroids[i] - target))))
+    else:
+        best = max(kept, key=lambda i: int(stats[i, cv2.CC_STAT_AREA]))
+    x, y, w, h, area = (int(s) for s in stats[best])
+    mask = np.where(labels == best, np.uint8(255), np.uint8(0))
+    rows, cols = np.nonzero(mask[y:y + h, x:x + w])
+    left_rows, right_rows = rows[cols == cols.min()], rows[cols == cols.max()]
+    height, width = image.shape[:2]
+    m = params.border_margin
+    return Silhouette(
+        mask=mask,
+        bbox=(x, y, w, h),
+        area=area,
+        centroid=(float(centroids[best][0]), float(centroids[best][1])),
+        left_px=(x, y + int(np.median(left_rows))),
+        right_px=(x + w - 1, y + int(np.median(right_rows))),
+        touches_left=x <= m,
+        touches_right=x + w - 1 >= width - 1 - m,
+        touches_top=y <= m,
+        touches_bottom=y + h - 1 >= height - 1 - m,
+    )
+
+
+def outline_edges(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Per row of a mask, the outer edges (u, v) of its leftmost and rightmost pixels (N x 2 each)."""
+    on = mask > 0
+    rows = np.flatnonzero(on.any(axis=1))
+    band = on[rows]
+    first = band.argmax(axis=1)
+    last = band.shape[1] - 1 - band[:, ::-1].argmax(axis=1)
+    v = rows.astype(float)
+    return np.column_stack([first - 0.5, v]), np.column_stack([last + 0.5, v])
+
+
+def measure_object(
+    silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray, params: PerceptionParams
+) -> Optional[ObjectMeasurement]:
+    """Centre azimuth, bearing phi and apparent width delta of a silhouette seen from T_WC.
+
+    None when the silhouette has no outline pixels; ``delta`` is None when it is cut by a side border.
+    """
+    if silhouette.area <= 0:
+        return None
+    left, right = outline_edges(silhouette.mask)
+    a_left = ray_azimuths(camera.pixels_to_rays(left), T_WC)
+    a_right = ray_azimuths(camera.pixels_to_rays(right), T_WC)
+    # Unwrap around the left tangent so that the comparisons below never straddle +-pi.
+    ref = float(a_left[np.argmin(left[:, 0])])
+    a_left = ref + wrap_angle(a_left - ref)
+    a_right = ref + wrap_angle(a_right - ref)
+    band = params.edge_band / camera.K[0, 0]
+    a_l = float(np.mean(a_left[a_left >= a_left.max() - band]))
+    a_r = float(np.mean(a_right[a_right <= a_right.min() + band]))
+    azimuth = wrap_angle(0.5 * (a_l + a_r))
+    phi = wrap_angle(azimuth - optical_axis_heading(T_WC))
+    delta = a_l - a_r if silhouette.width_valid else None
+    return ObjectMeasurement(azimuth=azimuth, phi=phi, delta=delta, a_left=wrap_angle(a_l), a_right=wrap_angle(a_r))
+
+
+def object_pixel_direction(camera: CameraModel, uv: Tuple[float, float]) -> Tuple[float, float]:
+    """Horizontal and vertical angles (rad) of a pixel's ray from the optical axis: (atan2(x, z), atan2(y, z))."""
+    x, y, z = camera.pixels_to_rays(np.asarray(uv, dtype=float))[0]
+    return math.atan2(x, z), math.atan2(y, z)

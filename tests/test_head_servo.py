@@ -1,0 +1,74 @@
+"""Head servo: the target centres the object's aim point, respects the yaw-dependent pitch limits,
+and follows a measured centroid."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from agent.camera import CameraModel, planar_transform
+from agent.head_servo import head_target
+from agent.perception import PerceptionParams
+from nao_bridge.config import CONFIG_DIR, load
+from nao_bridge.robot_model import load_robot_model
+
+
+@pytest.fixture(scope="module")
+def params() -> PerceptionParams:
+    return load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot_model()
+
+
+@pytest.fixture(scope="module")
+def camera(robot) -> CameraModel:
+    intr = robot.camera.intrinsics("vga")
+    return CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+
+
+def aim_pixel(robot, camera, pose, obj, params, head):
+    T_WC = planar_transform(*pose) @ robot.camera_in_robot(*head)
+    uv, in_front = camera.project_world(np.array([[obj[0], obj[1], params.aim_height]]), T_WC)
+    assert in_front[0]
+    return uv[0]
+
+
+@pytest.mark.parametrize("bearing, distance", [(0.0, 1.0), (0.6, 1.2), (-0.9, 1.5), (0.3, 2.0)])
+def test_target_puts_the_aim_point_on_the_optical_axis(params, robot, camera, bearing, distance):
+    pose = (0.3, -0.2, 0.4)
+    obj = (pose[0] + distance * math.cos(pose[2] + bearing), pose[1] + distance * math.sin(pose[2] + bearing), 0.05)
+    head = head_target(robot, pose, obj, params)
+    assert aim_pixel(robot, camera, pose, obj, params, head) == pytest.approx(camera.K[:2, 2], abs=0.5)
+
+
+def test_target_is_clamped_and_pitch_limits_shrink_at_large_yaw(params, robot):
+    pose = (0.0, 0.0, 0.0)
+    behind = head_target(robot, pose, (-1.0, 0.05, 0.05), params)
+    assert behind[0] == pytest.approx(robot.head.yaw[1])
+    close_side = head_target(robot, pose, (0.05, 0.4, 0.05), params)  # beside the feet: steep pitch
+    lo, hi = robot.head.pitch_range(close_side[0])
+    assert lo <= close_side[1] <= hi and close_side[1] == pytest.approx(hi)
+    assert hi < robot.head.pitch_range(0.0)[1]
+
+
+def test_measured_centroid_pulls_the_target(params, robot, camera):
+    pose, obj = (0.0, 0.0, 0.0), (1.0, 0.0, 0.05)
+    model = head_target(robot, pose, obj, params)
+    # The object was seen 40 px right of the centre with the head at the model target: turn right.
+    seen = (camera.K[0, 2] + 40.0, camera.K[1, 2])
+    pulled = head_target(robot, pose, obj, params, centroid_uv=seen, camera=camera, head_at_capture=model)
+    expected = model[0] - params.servo_gain * math.atan2(40.0, camera.K[0, 0])
+    assert pulled[0] == pytest.approx(expected, abs=1e-9) and pulled[1] == pytest.approx(model[1], abs=1e-9)
+    pure_model = dataclasses.replace(params, servo_gain=0.0)
+    assert head_target(robot, pose, obj, pure_model, centroid_uv=seen, camera=camera, head_at_capture=model) == pytest.approx(model)
+
+
+def test_without_an_estimate_the_head_searches(params, robot):
+    assert head_target(robot, None, (1.0, 0.0, 0.1), params) == robot.head.clamp(0.0, params.search_pitch)
+    assert head_target(robot, (0.0, 0.0, 0.0), None, params) == robot.head.clamp(0.0, params.search_pitch)
