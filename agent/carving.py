@@ -245,10 +245,12 @@ class VoxelCarver:
     def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> int:
         """Carve with one silhouette; returns the number of voxels it removed."""
         silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC))
-        table = cv2.integral(silhouette, sdepth=cv2.CV_32S)
+        x, y, w, h = cv2.boundingRect(silhouette)  # the summed-area table covers the silhouette's box only
+        table = cv2.integral(silhouette[y : y + h, x : x + w], sdepth=cv2.CV_32S)
+        image = np.array([camera.width, camera.height, x, y], dtype=np.int64)
         P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
         removed = _carve_view(
-            self._counts, self._alive, self._offsets, self._dims, P, self.corner, self.pitch, table, self.params.tolerance
+            self._counts, self._alive, self._offsets, self._dims, P, self.corner, self.pitch, table, image, self.params.tolerance
         )
         self.views_added += 1
         return int(removed)
@@ -314,8 +316,12 @@ def _pool_any(grid: np.ndarray, factor: int) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
-def _classify(level, i, j, k, P, corner, pitch, table):
-    """_EMPTY, _KEEP or _SPLIT for cell (i, j, k) of ``level`` (see the module docstring)."""
+def _classify(level, i, j, k, P, corner, pitch, table, image):
+    """_EMPTY, _KEEP or _SPLIT for cell (i, j, k) of ``level`` (see the module docstring).
+
+    ``image`` is (width, height, u, v): the image size and the top-left pixel of the silhouette's
+    bounding box, whose summed-area table is ``table`` (no silhouette pixel lies outside it).
+    """
     edge = pitch * (1 << level)
     x0, y0, z0 = corner[0] + i * edge, corner[1] + j * edge, corner[2] + k * edge
     a0 = P[0, 0] * x0 + P[0, 1] * y0 + P[0, 2] * z0 + P[0, 3]
@@ -336,18 +342,22 @@ def _classify(level, i, j, k, P, corner, pitch, table):
         return _KEEP  # behind the camera, and so are its children
     if w_min <= _MIN_DEPTH:
         return _SPLIT  # straddles the camera plane
-    height, width = table.shape[0] - 1, table.shape[1] - 1
+    width, height = image[0], image[1]
     u0, u1 = np.floor(u_min + 0.5), np.floor(u_max + 0.5)
     v0, v1 = np.floor(v_min + 0.5), np.floor(v_max + 0.5)
     if u1 < 0 or v1 < 0 or u0 >= width or v0 >= height:
         return _KEEP  # wholly outside the image
     if u0 < 0 or v0 < 0 or u1 >= width or v1 >= height:
         return _SPLIT  # partly outside the image
-    a0, a1, b0, b1 = int(u0), int(u1) + 1, int(v0), int(v1) + 1
+    area = (u1 - u0 + 1) * (v1 - v0 + 1)
+    a0, b0 = max(int(u0) - image[2], 0), max(int(v0) - image[3], 0)  # the box clipped to the table
+    a1, b1 = min(int(u1) + 1 - image[2], table.shape[1] - 1), min(int(v1) + 1 - image[3], table.shape[0] - 1)
+    if a1 <= a0 or b1 <= b0:
+        return _EMPTY
     count = table[b1, a1] - table[b0, a1] - table[b1, a0] + table[b0, a0]
     if count == 0:
         return _EMPTY
-    return _KEEP if count == (a1 - a0) * (b1 - b0) else _SPLIT
+    return _KEEP if count == area else _SPLIT
 
 
 @njit(cache=True, inline="always")
@@ -389,7 +399,7 @@ def _vote(level, i, j, k, counts, alive, offsets, dims, tolerance, removed):
 
 
 @njit(cache=True)
-def _carve_view(counts, alive, offsets, dims, P, corner, pitch, table, tolerance):
+def _carve_view(counts, alive, offsets, dims, P, corner, pitch, table, image, tolerance):
     """Carve the whole octree with one view, depth first; returns the number of voxels removed.
 
     A split cell is pushed back as a "refresh" entry under its children, so its flag is recomputed
@@ -411,7 +421,7 @@ def _carve_view(counts, alive, offsets, dims, P, corner, pitch, table, tolerance
                     if refresh:
                         _refresh(level, i, j, k, counts, alive, offsets, dims, tolerance)
                         continue
-                    status = _classify(level, i, j, k, P, corner, pitch, table)
+                    status = _classify(level, i, j, k, P, corner, pitch, table, image)
                     if status == _EMPTY:
                         _vote(level, i, j, k, counts, alive, offsets, dims, tolerance, removed)
                     elif status == _SPLIT and level > 0:
