@@ -1,7 +1,8 @@
 """``station carve LOG.mcap -o model.ply [--resolution M] [--tolerance K]``: offline carving.
 
-The keyframes the run chose (``/agent/keyframe``: frame sequence number and T_WC) are carved
-again from the logged JPEGs: silhouette by the run's perception parameters, volume around the
+The keyframes the run chose (``/agent/keyframe``: frame sequence number, T_WC and the predicted
+object pixel that picked the blob) are carved again from the logged JPEGs: silhouette by the run's
+perception parameters, volume around the
 run's final object estimate, the given voxel edge and tolerance (defaults: the run's). With the
 run's parameters this reproduces the run's model (carving does not depend on the order of views).
 """
@@ -32,12 +33,12 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
     config, info = load_setup(log_path)
     params = config.carving if tolerance is None else dataclasses.replace(config.carving, tolerance=tolerance)
     camera = camera_from_info(info)
-    wanted: Dict[int, np.ndarray] = {}
+    wanted: Dict[int, Dict] = {}
     estimate = None
     for message in read_log(log_path, topics={KEYFRAME, EKF}):
         payload = message.json()
         if message.topic == KEYFRAME:
-            wanted[payload["seq"]] = np.asarray(payload["T_WC"], dtype=float).reshape(4, 4)
+            wanted[payload["seq"]] = payload
         elif payload["x"] is not None:
             estimate = payload
     if not wanted or estimate is None:
@@ -51,9 +52,11 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
             elif seq in wanted:
                 jpeg = message.proto(CompressedImage).data
                 image = cv2.imdecode(np.frombuffer(jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
-                mask = extract_silhouette(image, config.perception)
-                if mask is not None:
-                    views.append((mask, camera, wanted.pop(seq)))
+                keyframe = wanted.pop(seq)
+                predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
+                silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose
+                if silhouette is not None:
+                    views.append((silhouette.mask, camera, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
                 bar.update()
     x, P = np.asarray(estimate["x"]), np.asarray(estimate["P"])
     return carve_views(views, x, P, params, pitch=resolution)

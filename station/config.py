@@ -22,7 +22,9 @@ import yaml
 
 from agent.carving import CarvingParams
 from agent.ekf import EKFParams
+from agent.localization import LocalizationParams
 from agent.mission import MissionParams
+from agent.perception import PerceptionParams
 from agent.planner import PlannerParams
 from nao_bridge.config import CONFIG_DIR, ConfigError, bounds, load
 from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
@@ -49,6 +51,8 @@ SECTIONS: Dict[str, type] = {
     "ekf": EKFParams,
     "planner": PlannerParams,
     "carving": CarvingParams,
+    "perception": PerceptionParams,
+    "localization": LocalizationParams,
 }
 ROBOT_SECTION = "robot"
 
@@ -60,6 +64,8 @@ class StationConfig:
     ekf: EKFParams
     planner: PlannerParams
     carving: CarvingParams
+    perception: PerceptionParams
+    localization: LocalizationParams
     landmarks: LandmarkMap
     overrides: Sequence[Path] = ()
 

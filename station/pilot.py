@@ -8,16 +8,17 @@ anything not passed in.
 
 Per frame (capture time s, head kinematics T_BC and odometry at capture, in the frame's meta)::
 
-    image = imdecode(JPEG);  pose = localizer.on_frame(...)            robot pose (x, y, theta) in W
+    image = imdecode(JPEG);  localizer.on_frame(...);  pose = localizer.pose_at(odom at capture)
     T_WC = T_WB(pose) T_BC;  cam = (C_x, C_y, psi(T_WC))                 camera on the floor plane
-    mask = extract_silhouette(image);  (phi, delta) = measure_object(mask, camera, T_WC)
+    silhouette = extract_silhouette(image, predicted pixel of the estimate)
+    (phi, delta) = measure_object(silhouette, camera, T_WC)               delta None when cut by a border
     EKF: predict(s - s_prev), then update(cam, phi, delta), or initialize on the first measurement
-    coverage.add(cam);  keyframe iff the object was measured and the viewing azimuth
+    coverage.add(cam);  keyframe iff the whole silhouette was measured and the viewing azimuth
     a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle
 
 Per tick: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the current
 plan's first command, re-sent every tick (the bridge's deadman), and the head follows the head
-servo's target. Then, once the tick's commands are out (planning never delays them), every
+servo's target (the estimate's direction blended with the last silhouette centroid). Then, once the tick's commands are out (planning never delays them), every
 ``planner.period`` in ACTIVE the planner's termination test runs (goal reached ->
 ``mission.on_goal``, the next tick stops the robot), else it replans (the new command goes out on
 the next tick).
@@ -71,13 +72,14 @@ class Pilot:
         self.ekf = ObjectEKF(config.ekf)
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
-        self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera)
+        self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.pose: Optional[Tuple[float, float, float]] = None
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
         self._last_capture: Optional[float] = None
         self._keyframe_azimuths: List[float] = []
+        self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
 
     # inputs -----------------------------------------------------------------------------------
 
@@ -89,24 +91,28 @@ class Pilot:
     def on_frame(self, frame: Frame, t: float) -> Step:
         meta = frame.meta
         image = cv2.imdecode(np.frombuffer(frame.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
-        if image is None or image.shape[:2] != (meta.height, meta.width):
-            return Step([(FRAME_REJECTED, {"t": t, "seq": meta.seq, "reason": "JPEG does not decode to the announced size"})])
+        if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
+            return Step([(FRAME_REJECTED, {"t": t, "seq": meta.seq, "reason": "JPEG does not decode to the camera's image size"})])
         T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
         fix = self.localizer.on_frame(image, T_BC, meta.odom, meta.stamp)
-        self.pose = self.localizer.pose
+        self.pose = self.localizer.pose_at(meta.odom)  # at capture time
         step = Step()
         object_seen = False
         if self.pose is not None:
             T_WC = camera_in_world(self.pose, T_BC)
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
             step.outputs.append((POSE, {"t": t, "seq": meta.seq, "stamp": meta.stamp, "pose": list(self.pose),
-                                                 "odom": list(meta.odom), "landmark_fix": fix is not None, "T_WC": T_WC.ravel().tolist()}))
-            mask = extract_silhouette(image, self.config.perception)
-            measurement = None if mask is None else measure_object(mask, self.camera, T_WC, self.config.perception)
+                                        "odom": list(meta.odom), "landmark_fix": fix is not None, "T_WC": T_WC.ravel().tolist()}))
+            predicted = self._predicted_pixel(T_WC)
+            silhouette = extract_silhouette(image, self.config.perception, predicted)
+            measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
+            self._sighting = None
             if measurement is not None:
                 object_seen = True
+                self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement)
-                self._maybe_keyframe(step, t, meta.seq, cam, mask, T_WC)
+                if silhouette.width_valid:
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted)
             self.coverage.add(np.asarray(cam))
             if self.ekf.initialized:
                 step.outputs.append((COVERAGE, {"t": t, "fraction": self.coverage.fraction(self.ekf.x)}))
@@ -125,7 +131,8 @@ class Pilot:
         """The mission's decision for now; in ACTIVE the current plan's command and the head target."""
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE:
-            head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception)
+            centroid, head_at_capture = self._sighting if self._sighting else (None, None)
+            head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture)
             decision = Decision(decision.phase, walk=self.command, head=head)
         return Step([(DECISION, {
             "t": t, "phase": decision.phase.value, "walk": decision.walk, "head": decision.head, "stop": decision.stop,
@@ -155,7 +162,16 @@ class Pilot:
         }))
         step.outputs.append((EKF, {"t": t, **self.ekf.snapshot()}))
 
-    def _maybe_keyframe(self, step: Step, t: float, seq: int, cam, mask: np.ndarray, T_WC: np.ndarray) -> None:
+    def _predicted_pixel(self, T_WC: np.ndarray) -> Optional[Tuple[float, float]]:
+        """Where the estimate's centre (at the servo's aim height) should appear, to pick the right blob."""
+        if not self.ekf.initialized:
+            return None
+        x = self.ekf.x
+        uv, in_front = self.camera.project_world(np.array([[x[0], x[1], self.config.perception.aim_height]]), T_WC)
+        return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
+
+    def _maybe_keyframe(self, step: Step, t: float, seq: int, cam, mask: np.ndarray, T_WC: np.ndarray,
+                        predicted: Optional[Tuple[float, float]]) -> None:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
@@ -164,7 +180,8 @@ class Pilot:
             return
         self._keyframe_azimuths.append(azimuth)
         step.keyframe = (mask, T_WC)
-        step.outputs.append((KEYFRAME, {"t": t, "seq": seq, "azimuth": azimuth, "T_WC": T_WC.ravel().tolist()}))
+        step.outputs.append((KEYFRAME, {"t": t, "seq": seq, "azimuth": azimuth, "T_WC": T_WC.ravel().tolist(),
+                                        "predicted_uv": predicted}))
 
     def _control(self, step: Step, t: float) -> None:
         if self._t_active is None:

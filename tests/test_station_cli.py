@@ -8,7 +8,6 @@ import sys
 
 import pytest
 
-pytest.importorskip("agent.perception", reason="the station's pipeline needs agent.perception (not landed yet)")
 
 
 def station(*args: str) -> subprocess.CompletedProcess:
