@@ -4,7 +4,7 @@ Landmark points (image u_i <-> world X_i):
 
 * ArUco markers (``cv2.aruco.ArucoDetector``, sub-pixel corners): the four corners of each marker of
   the map, in ``Landmark.aruco_corners()`` order.
-* Colour markers: centroids of the blobs of each colour class. Colours repeat, so a blob is
+* Colour markers: centroids of the blobs of each colour class (found at half resolution). Colours repeat, so a blob is
   associated with the landmark of its colour whose projection from the pose prior is nearest,
   within ``color_gate`` pixels, and only when no other landmark of that colour is within the gate
   (ambiguous blobs and doubly claimed landmarks are dropped). Without a prior, only colours that
@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from agent.camera import CameraModel, invert, planar_pose, planar_transform, wrap_angle
-from agent.perception import PerceptionParams, check_image, color_blobs
+from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_bridge.config import bounds
 from nao_bridge.landmark_map import Landmark, LandmarkMap
 
@@ -71,6 +71,7 @@ class LocalizationParams:
     odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
+    aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,8 @@ class LandmarkDetector:
             self.aruco.setdefault(str(lm.dictionary), {})[int(lm.id)] = lm.aruco_corners()
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
+        (detector_params.adaptiveThreshWinSizeMin, detector_params.adaptiveThreshWinSizeMax,
+         detector_params.adaptiveThreshWinSizeStep) = params.aruco_threshold_windows
         self.detectors = {
             name: cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), detector_params)
             for name in self.aruco
@@ -150,14 +153,16 @@ class LandmarkDetector:
         if not self.colors:
             return [], [], []
         assert self.perception is not None
-        hsv = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2HSV)
+        # Half resolution: 4x fewer pixels; a half-size pixel (i, j) is centred on full-size (2i + 1/2, 2j + 1/2).
+        half = cv2.resize(image_bgr, (image_bgr.shape[1] // 2, image_bgr.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        hsv = cv2.cvtColor(half, cv2.COLOR_BGR2HSV)
+        min_area = max(1, self.perception.landmark_min_area // 4)
         ids: List[object] = []
         world: List[np.ndarray] = []
         image: List[np.ndarray] = []
         for name, landmarks in self.colors.items():
-            _, _, centroids, kept = color_blobs(hsv, self.perception.colors[name], self.perception, self.perception.landmark_min_area)
-            blobs = centroids[kept]
-            for lm, uv in self._associate(landmarks, blobs, camera, T_WC_prior):
+            _, _, centroids = blobs(color_mask(hsv, self.perception.colors[name]), min_area)
+            for lm, uv in self._associate(landmarks, 2.0 * centroids + 0.5, camera, T_WC_prior):
                 ids.append(lm.id)
                 world.append(np.asarray(lm.position, dtype=float).reshape(1, 3))
                 image.append(uv.reshape(1, 2))

@@ -5,8 +5,8 @@ Segmentation (per colour class, OpenCV HSV: H in [0, 180), S, V in [0, 255])::
     M = [h_lo <= H <= h_hi] & [S in s] & [V in v]          (h_lo > h_hi wraps: H >= h_lo or H <= h_hi)
     M <- close(open(M, disc(r_open)), disc(r_close))         (drop speckle, fill pinholes)
 
-The object is one 8-connected component of M with area >= min_area: the largest, or the one whose
-centroid is nearest a predicted pixel. Its mask (0/255) is what the carver intersects.
+The object is one 8-connected component of M (found by its outer contour) with area >= min_area:
+the largest, or the one whose centroid is nearest a predicted pixel. Its mask (0/255) is what the carver intersects.
 
 Measurement (DESIGN.md section 2). For every image row v of the silhouette, the outer edge of its
 leftmost and rightmost pixels, (u_min(v) - 1/2, v) and (u_max(v) + 1/2, v) (a pixel's centre is at
@@ -144,15 +144,30 @@ def clean_mask(mask: np.ndarray, params: PerceptionParams) -> np.ndarray:
     return mask
 
 
-def color_blobs(hsv: np.ndarray, color: ColorClass, params: PerceptionParams, min_area: int):
-    """Connected components of a cleaned colour mask with area >= min_area.
+def blobs(mask: np.ndarray, min_area: int) -> Tuple[list, np.ndarray, np.ndarray]:
+    """Outer contours of a binary mask whose pixel area (approximated by the contour's polygon area
+    plus half its perimeter, the pixels its outline passes through) is >= min_area.
 
-    Returns (labels, stats, centroids, kept label indices) as ``cv2.connectedComponentsWithStats``.
+    Returns (contours, areas, centroids (N x 2, (u, v))). Contours are far cheaper than labelling
+    the whole image with statistics; the chosen blob is labelled exactly in its bounding box.
     """
-    mask = clean_mask(color_mask(hsv, color), params)
-    _, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    kept = [i for i in range(1, stats.shape[0]) if stats[i, cv2.CC_STAT_AREA] >= min_area]
-    return labels, stats, centroids, kept
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    kept, areas, centroids = [], [], []
+    for contour in contours:
+        area = cv2.contourArea(contour) + 0.5 * cv2.arcLength(contour, True) + 1.0
+        if area < min_area:
+            continue
+        m = cv2.moments(contour)
+        centre = (m["m10"] / m["m00"], m["m01"] / m["m00"]) if m["m00"] > 0 else tuple(contour.reshape(-1, 2).mean(axis=0))
+        kept.append(contour)
+        areas.append(area)
+        centroids.append(centre)
+    return kept, np.asarray(areas, dtype=float), np.asarray(centroids, dtype=float).reshape(-1, 2)
+
+
+def color_blobs(hsv: np.ndarray, color: ColorClass, params: PerceptionParams, min_area: int):
+    """``blobs`` of the cleaned mask of one colour class in an HSV image."""
+    return blobs(clean_mask(color_mask(hsv, color), params), min_area)
 
 
 def extract_silhouette(
@@ -172,26 +187,31 @@ def extract_silhouette(
     name = params.object_color if color is None else color
     if name not in params.colors:
         raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
-    hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV)
-    labels, stats, centroids, kept = color_blobs(hsv, params.colors[name], params, params.min_area)
-    if not kept:
+    cleaned = clean_mask(color_mask(cv2.cvtColor(image, cv2.COLOR_BGR2HSV), params.colors[name]), params)
+    contours, areas, centroids = blobs(cleaned, params.min_area)
+    if not contours:
         return None
     if params.component == "nearest" and predicted_uv is not None:
-        target = np.asarray(predicted_uv, dtype=float)
-        best = min(kept, key=lambda i: float(np.hypot(*(centroids[i] - target))))
+        best = int(np.argmin(np.hypot(*(centroids - np.asarray(predicted_uv, dtype=float)).T)))
     else:
-        best = max(kept, key=lambda i: int(stats[i, cv2.CC_STAT_AREA]))
-    x, y, w, h, area = (int(s) for s in stats[best])
-    mask = np.where(labels == best, np.uint8(255), np.uint8(0))
-    rows, cols = np.nonzero(mask[y:y + h, x:x + w])
-    left_rows, right_rows = rows[cols == cols.min()], rows[cols == cols.max()]
+        best = int(np.argmax(areas))
+    x, y, w, h = cv2.boundingRect(contours[best])
+    # Label the bounding box only: the component is the one under the contour's first point
+    # (holes stay holes; other blobs reaching into the box are left out).
+    _, labels = cv2.connectedComponents(cleaned[y:y + h, x:x + w], connectivity=8)
+    u0, v0 = contours[best][0, 0]
+    component = labels == labels[v0 - y, u0 - x]
+    mask = np.zeros_like(cleaned)
+    mask[y:y + h, x:x + w][component] = 255
+    rows, cols = np.nonzero(component)
+    left_rows, right_rows = rows[cols == 0], rows[cols == w - 1]
     height, width = image.shape[:2]
     m = params.border_margin
     return Silhouette(
         mask=mask,
         bbox=(x, y, w, h),
-        area=area,
-        centroid=(float(centroids[best][0]), float(centroids[best][1])),
+        area=int(rows.size),
+        centroid=(x + float(cols.mean()), y + float(rows.mean())),
         left_px=(x, y + int(np.median(left_rows))),
         right_px=(x + w - 1, y + int(np.median(right_rows))),
         touches_left=x <= m,
