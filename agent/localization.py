@@ -2,7 +2,8 @@
 
 Landmark points (image u_i <-> world X_i):
 
-* ArUco markers (``cv2.aruco.ArucoDetector``, sub-pixel corners): the four corners of each marker of
+* ArUco markers (``cv2.aruco.ArucoDetector`` on an image reduced to at most ``aruco_detection_width``,
+  corners refined on the full image by ``cv2.cornerSubPix``): the four corners of each marker of
   the map, in ``Landmark.aruco_corners()`` order.
 * Colour markers: centroids of the blobs of each colour class (found at half resolution). Colours repeat, so a blob is
   associated with the landmark of its colour whose projection from the pose prior is nearest,
@@ -71,6 +72,7 @@ class LocalizationParams:
     odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
+    aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
     aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
 
 
@@ -91,6 +93,7 @@ _CORNER_REFINEMENT = {
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
 }
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 _PNP_FLAGS = {"sqpnp": cv2.SOLVEPNP_SQPNP, "iterative": cv2.SOLVEPNP_ITERATIVE, "epnp": cv2.SOLVEPNP_EPNP}
 
 
@@ -132,11 +135,19 @@ class LandmarkDetector:
                 self.colors.setdefault(str(lm.color), []).append(lm)
 
     def aruco_points(self, gray: np.ndarray) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
+        """Map markers found in a grey image: ids, world corners (4 x 3 each), image corners (4 x 2 each).
+
+        Detection runs on the image reduced by an integer factor f to at most
+        ``aruco_detection_width`` wide; the corners, mapped back by (c + 1/2) f - 1/2, are refined
+        on the full image with ``cv2.cornerSubPix``.
+        """
+        factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
+        small = gray if factor == 1 else cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
         ids_out: List[object] = []
         world: List[np.ndarray] = []
         image: List[np.ndarray] = []
         for name, detector in self.detectors.items():
-            corners, ids, _ = detector.detectMarkers(gray)
+            corners, ids, _ = detector.detectMarkers(small)
             if ids is None:
                 continue
             known = self.aruco[name]
@@ -145,6 +156,11 @@ class LandmarkDetector:
                     ids_out.append(int(marker_id))
                     world.append(known[int(marker_id)])
                     image.append(c.reshape(4, 2))
+        if factor > 1 and image:
+            points = ((np.vstack(image) + 0.5) * factor - 0.5).astype(np.float32)
+            window = (factor + 1, factor + 1)  # half-size: a (2f + 3)-pixel square around each corner
+            points = cv2.cornerSubPix(gray, points.reshape(-1, 1, 2), window, (-1, -1), _SUBPIX_CRITERIA).reshape(-1, 2)
+            image = list(points.reshape(-1, 4, 2))
         return ids_out, world, image
 
     def color_points(
@@ -202,8 +218,14 @@ class RobotLocalizer:
         self.camera = camera
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
         self._correction: Optional[Pose] = None  # W <- odometry frame
+        self.covariance = np.full((3, 3), np.nan)
+        self.rejected_jumps = 0
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
+
+    def reset(self) -> None:
+        """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
+        self._correction = None
         self.covariance = np.full((3, 3), np.nan)
         self.rejected_jumps = 0
 
