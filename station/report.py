@@ -107,6 +107,11 @@ def _trajectory(s: RunSeries):
     if s.truth:
         obj = s.truth[-1].object
         ax.add_patch(plt.Circle(tuple(obj.centre), obj.radius, fill=False, color="k", ls="--", lw=1.5, label="object (truth)"))
+    region = [p["pose"][:2] for p in s.poses] + [e["x"][:2] for e in s.ekf[-1:]]
+    if region:  # the early ellipses are metres wide: frame the walk and the final estimate
+        lo, hi = np.min(region, axis=0) - 0.3, np.max(region, axis=0) + 0.3
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
