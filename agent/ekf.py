@@ -102,6 +102,8 @@ class EKFParams:
     gate_probability: float = field(metadata=bounds(0.5, 1.0 - 1e-12))
     min_radius: float = field(metadata=bounds(0.0, 10.0))  # m
     iterations: int = field(metadata=bounds(1, 50))  # Gauss-Newton steps per update; 1 = plain EKF
+    inverse_range_switch: float = field(metadata=bounds(0.0, 1.0))  # rho std / rho below which x, P take over
+    reinitialize_after: int = field(metadata=bounds(1, 100000))  # consecutive gated views that restart the filter
     width_model: WidthModel
 
     @property
@@ -133,12 +135,14 @@ class UpdateResult:
 @dataclass
 class FilterStats:
     """Counters the station logs: observations accepted, rejected by the gate, rejected as invalid,
-    and rejections since the last accepted one (a long streak means the estimate is lost)."""
+    rejections since the last accepted one, and restarts from a view after ``reinitialize_after``
+    consecutive gated views (the estimate was lost)."""
 
     accepted: int = 0
     gated: int = 0
     invalid: int = 0
     rejected_in_a_row: int = 0
+    reinitialized: int = 0
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -251,13 +255,11 @@ def rollout_covariance(
     return P
 
 
-def _range_from_width(r0: float, delta: float, width_model: WidthModel) -> Tuple[float, float, float]:
-    """Range d implied by radius r0 and width delta, and its derivatives dd/ddelta, dd/dr0."""
+def _size_from_width(delta: float, width_model: WidthModel) -> Tuple[float, float]:
+    """Angular size s = r / d implied by the width delta, and ds/ddelta."""
     if width_model == "asin":
-        s, c = math.sin(0.5 * delta), math.cos(0.5 * delta)
-        return r0 / s, -0.5 * r0 * c / (s * s), 1.0 / s
-    t, s = math.tan(delta), math.sin(delta)
-    return r0 / t, -r0 / (s * s), 1.0 / t
+        return math.sin(0.5 * delta), 0.5 * math.cos(0.5 * delta)
+    return math.tan(delta), 1.0 / math.cos(delta) ** 2
 
 
 class ObjectEKF:
@@ -268,6 +270,12 @@ class ObjectEKF:
         self.x: Optional[np.ndarray] = None
         self.P: Optional[np.ndarray] = None
         self.stats = FilterStats()
+        # Inverse-range state (beta, rho, s) and its covariance while the range is poorly known,
+        # anchored at the first camera; None once the filter runs on x, P directly.
+        self._anchor: Optional[np.ndarray] = None
+        self._y: Optional[np.ndarray] = None
+        self._Py: Optional[np.ndarray] = None
+        self._lost_in_a_row = 0
         self._R = params.R
         self._gate = {dof: float(chi2.ppf(params.gate_probability, dof)) for dof in (1, 2)}
         self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
@@ -284,6 +292,8 @@ class ObjectEKF:
         other = copy.copy(self)  # shares the immutable params, R and gate thresholds
         other.x = None if self.x is None else self.x.copy()
         other.P = None if self.P is None else self.P.copy()
+        other._y = None if self._y is None else self._y.copy()
+        other._Py = None if self._Py is None else self._Py.copy()
         other.stats = dataclasses.replace(self.stats)
         return other
 
@@ -322,17 +332,24 @@ class ObjectEKF:
             return self._reject_invalid(reason, dof)
         cx, cy, psi = (float(v) for v in cam)
         heading = psi + phi
-        c, s = math.cos(heading), math.sin(heading)
+        self._anchor = self._y = self._Py = None
+        self._lost_in_a_row = 0
         if delta is None:
-            rng, d_rng, d_r = p.default_range, 1.0, 0.0
-            noise = np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2
+            c, s = math.cos(heading), math.sin(heading)
+            rng = p.default_range
+            # G = d(xo, yo, r) / d(phi, range, r0)
+            G = np.array([[-rng * s, c, 0.0], [rng * c, s, 0.0], [0.0, 0.0, 1.0]])
+            self.x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
+            self.P = G @ np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2 @ G.T
         else:
-            rng, d_rng, d_r = _range_from_width(p.radius_prior, delta, p.width_model)
-            noise = np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2
-        # G = d(xo, yo, r) / d(phi, delta or range, r0)
-        G = np.array([[-rng * s, c * d_rng, c * d_r], [rng * c, s * d_rng, s * d_r], [0.0, 0.0, 1.0]])
-        self.x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
-        self.P = G @ noise @ G.T
+            size, d_size = _size_from_width(delta, p.width_model)
+            rho = size / p.radius_prior
+            # G = d(beta, rho, s) / d(phi, delta, r0)
+            G = np.array([[1.0, 0.0, 0.0], [0.0, d_size / p.radius_prior, -rho / p.radius_prior], [0.0, d_size, 0.0]])
+            self._anchor = np.array([cx, cy])
+            self._y = np.array([heading, rho, size])
+            self._Py = G @ np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2 @ G.T
+            self._publish()
         self.stats.accepted += 1
         return UpdateResult(True, None, dof, None, "initialized")
 
@@ -340,7 +357,11 @@ class ObjectEKF:
         """Add the process noise of ``dt`` seconds (the object is static)."""
         if not (math.isfinite(dt) and dt >= 0.0):
             raise ValueError(f"predict: dt must be finite and >= 0 s, got {dt!r}")
-        if self.P is not None:
+        if self._y is not None:
+            J_inv = np.linalg.inv(self._cartesian_jacobian(self._y))
+            self._Py = self._Py + J_inv @ self.params.Q(dt) @ J_inv.T
+            self._publish()
+        elif self.P is not None:
             self.P = self.P + self.params.Q(dt)
 
     def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
@@ -356,51 +377,112 @@ class ObjectEKF:
             return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
         R = self._R[:dof, :dof]
-        nu = self._innovation(self.x, cam, z)
+        inverse_range = self._y is not None
+        mean, cov = (self._y, self._Py) if inverse_range else (self.x, self.P)
+        model = self._inverse_range_model if inverse_range else self._cartesian_model
+        h0, _ = model(mean, cam, dof)
+        nu = self._wrapped(z - h0)
         # Iterated EKF: Gauss-Newton on the MAP cost; one iteration is the plain EKF update.
         step = None
-        x_lin = self.x
+        m_lin, residual = mean, nu
         for _ in range(self.params.iterations):
-            H = self._jacobian(x_lin, cam, dof)
-            S = H @ self.P @ H.T + R
-            residual = nu if x_lin is self.x else self._innovation(x_lin, cam, z) - H @ (self.x - x_lin)
-            S_inv = _inverse_spd(S)
-            gain = self.P @ H.T @ S_inv
-            x_next = self.x + gain @ residual
-            if not (np.all(np.isfinite(x_next)) and self._outside(x_next, cam)):
+            h, H = model(m_lin, cam, dof)
+            if m_lin is not mean:
+                residual = self._wrapped(z - h) - H @ (mean - m_lin)
+            S_inv = _inverse_spd(H @ cov @ H.T + R)
+            gain = cov @ H.T @ S_inv
+            m_next = mean + gain @ residual
+            if not (np.all(np.isfinite(m_next)) and self._valid(m_next, cam, inverse_range)):
                 break
-            step = (x_next, H, S_inv, residual, gain)
-            if np.max(np.abs(x_next - x_lin)) < 1e-9:  # m: converged
+            step = (m_next, H, S_inv, residual, gain)
+            if np.max(np.abs(m_next - m_lin)) < 1e-9:  # converged
                 break
-            x_lin = x_next
+            m_lin = m_next
         if step is None:
-            return self._reject_invalid("update would put the camera inside the object or is degenerate", dof)
-        x, H, S_inv, residual, gain = step
+            return self._reject_inconsistent(cam, phi, delta, None, nu, "update would put the camera inside the object or is degenerate")
+        m, H, S_inv, residual, gain = step
         nis = float(residual @ S_inv @ residual)  # = min MAP cost; the plain NIS when iterations = 1
         if not math.isfinite(nis):
             return self._reject_invalid("innovation covariance is degenerate", dof)
         if nis > self._gate[dof]:
-            self.stats.gated += 1
-            self.stats.rejected_in_a_row += 1
-            return UpdateResult(False, nis, dof, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
+            return self._reject_inconsistent(cam, phi, delta, nis, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
+        self._lost_in_a_row = 0
         A = np.eye(3) - gain @ H
-        P = A @ self.P @ A.T + gain @ R @ gain.T
-        if not np.all(np.isfinite(P)):
+        cov = A @ cov @ A.T + gain @ R @ gain.T
+        if not np.all(np.isfinite(cov)):
             return self._reject_invalid("update produced a non-finite covariance", dof)
-        x = x.copy()
-        x[2] = max(x[2], self.params.min_radius)
-        self.x, self.P = x, 0.5 * (P + P.T)
+        cov = 0.5 * (cov + cov.T)
+        if inverse_range:
+            self._y, self._Py = m, cov
+            self._publish()
+            if math.sqrt(cov[1, 1]) < self.params.inverse_range_switch * m[1]:
+                self._anchor = self._y = self._Py = None  # the range is known: continue on x, P
+        else:
+            self.x, self.P = m.copy(), cov
+            self.x[2] = max(self.x[2], self.params.min_radius)
         self.stats.accepted += 1
         self.stats.rejected_in_a_row = 0
         return UpdateResult(True, nis, dof, nu, "ok")
 
+    def _reject_inconsistent(
+        self, cam: np.ndarray, phi: float, delta: Optional[float], nis: Optional[float], nu: np.ndarray, reason: str
+    ) -> UpdateResult:
+        """A valid view that contradicts the estimate (gated, or its update leaves the state's domain);
+        after ``reinitialize_after`` of them in a row the estimate is lost: restart from this view."""
+        if nis is None:
+            self.stats.invalid += 1
+        else:
+            self.stats.gated += 1
+        self._lost_in_a_row += 1
+        if self._lost_in_a_row < self.params.reinitialize_after:
+            self.stats.rejected_in_a_row += 1
+            return UpdateResult(False, nis, nu.size, nu if nis is not None else None, reason)
+        streak = self._lost_in_a_row
+        self.initialize(cam, phi, delta)
+        self.stats.reinitialized += 1
+        self.stats.rejected_in_a_row = 0
+        return UpdateResult(True, nis, nu.size, nu, f"re-initialized after {streak} consecutive views inconsistent with the estimate ({reason})")
+
+    def _publish(self) -> None:
+        """x, P of the inverse-range state, to first order: x = x(y), P = J P_y J^T."""
+        beta, rho, size = self._y
+        self.x = np.array([self._anchor[0] + math.cos(beta) / rho, self._anchor[1] + math.sin(beta) / rho, size / rho])
+        J = self._cartesian_jacobian(self._y)
+        self.P = J @ self._Py @ J.T
+
+    @staticmethod
+    def _cartesian_jacobian(y: np.ndarray) -> np.ndarray:
+        """J = d(xo, yo, r) / d(beta, rho, s)."""
+        beta, rho, size = y
+        c, s = math.cos(beta), math.sin(beta)
+        return np.array([[-s / rho, -c / rho**2, 0.0], [c / rho, -s / rho**2, 0.0], [0.0, -size / rho**2, 1.0 / rho]])
+
+    def _cartesian_model(self, x: np.ndarray, cam: np.ndarray, dof: int) -> Tuple[np.ndarray, np.ndarray]:
+        p = self.params
+        return measure(x, cam, p.width_model)[:dof], measurement_jacobian(x, cam, p.width_model)[:dof]
+
+    def _inverse_range_model(self, y: np.ndarray, cam: np.ndarray, dof: int) -> Tuple[np.ndarray, np.ndarray]:
+        """h and dh/dy through the scaled state u = rho (xo - cx, yo - cy, r) seen from the origin (h is
+        homogeneous of degree 0): u = (rho (ax - cx) + cos beta, rho (ay - cy) + sin beta, s)."""
+        beta, rho, size = y
+        offset = self._anchor - cam[:2]
+        u = np.array([rho * offset[0] + math.cos(beta), rho * offset[1] + math.sin(beta), size])
+        du_dy = np.array([[-math.sin(beta), offset[0], 0.0], [math.cos(beta), offset[1], 0.0], [0.0, 0.0, 1.0]])
+        origin = np.array([0.0, 0.0, cam[2]])
+        h, H = self._cartesian_model(u, origin, dof)
+        return h, H @ du_dy
+
+    def _valid(self, m: np.ndarray, cam: np.ndarray, inverse_range: bool) -> bool:
+        if not inverse_range:
+            return self._outside(m, cam)
+        # In front of the anchor at a finite range, and the camera outside the object.
+        return m[1] > 0.0 and 0.0 < m[2] < 1.0 and math.hypot(*(m[1] * (self._anchor - cam[:2]) + (math.cos(m[0]), math.sin(m[0])))) > m[2]
+
     def _outside(self, x: np.ndarray, cam: np.ndarray) -> bool:
         return math.hypot(x[0] - cam[0], x[1] - cam[1]) > x[2]
 
-    def _innovation(self, x: np.ndarray, cam: np.ndarray, z: np.ndarray) -> np.ndarray:
-        nu = z - measure(x, cam, self.params.width_model)[: z.size]
+    @staticmethod
+    def _wrapped(nu: np.ndarray) -> np.ndarray:
+        nu = nu.copy()
         nu[0] = wrap_angle(nu[0])
         return nu
-
-    def _jacobian(self, x: np.ndarray, cam: np.ndarray, dof: int) -> np.ndarray:
-        return measurement_jacobian(x, cam, self.params.width_model)[:dof]

@@ -91,13 +91,16 @@ def circling_runs(
 ) -> list[Trace]:
     """Monte-Carlo runs of one circle at 0.5 m around a random object (centre in [-1, 1]^2 m).
 
-    The true radius is 0.07 m, or drawn from N(radius_prior, radius_std^2) when ``radius_std`` > 0
-    (a prior that matches the truth, for consistency checks). Random start angle and aim offset.
+    The true radius is 0.07 m, or, when ``radius_std`` > 0, drawn from the prior as the filter models
+    it (a truth that matches the model, for consistency checks): the radius prior propagated to first
+    order to the inverse radius, 1 / r ~ N(1 / radius_prior, (radius_std / radius_prior^2)^2).
+    Random start angle and aim offset.
     """
     rng = np.random.default_rng(seed)
     traces = []
+    r0 = params.radius_prior
     for _ in range(n_runs):
-        r = params.radius_prior + radius_std * rng.standard_normal() if radius_std else 0.07
+        r = 1.0 / (1.0 / r0 + radius_std / r0**2 * rng.standard_normal()) if radius_std else 0.07
         truth = np.array([*rng.uniform(-1.0, 1.0, 2), r])
         start, aim = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2)
         cams = circling_cameras(truth[:2], 0.5, n_views, start=start, aim_offset=aim)
