@@ -1,0 +1,129 @@
+"""Camera intrinsics and distortion from chessboard images, written as robot-config YAML.
+
+Per image ``cv2.findChessboardCorners`` + ``cv2.cornerSubPix`` give the inner corners; with the
+board's corner grid X_ij = (i s, j s, 0) (s = square side) ``cv2.calibrateCamera`` minimizes the
+reprojection error over K, the distortion (k1, k2, p1, p2, k3) and one pose per view. The result
+is written in the shape of ``robot.camera.resolutions.<name>`` of config/robots/nao_v6.yaml, so
+it can be passed to the bridge and the station with ``--config``.
+
+Usage::
+
+    .venv/bin/python -m tools.calibrate_camera --pattern 9x6 --square 0.025 --resolution vga \\
+        --output config/robots/my_nao.yaml shots/*.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+import yaml
+
+MIN_VIEWS = 5
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+
+
+class CalibrationError(ValueError):
+    """The inputs cannot give a calibration (the message says why)."""
+
+
+def parse_pattern(text: str) -> Tuple[int, int]:
+    """'COLSxROWS' inner corners, e.g. '9x6'."""
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"pattern must be COLSxROWS inner corners (e.g. 9x6), got {text!r}") from None
+    if cols < 3 or rows < 3:
+        raise argparse.ArgumentTypeError(f"pattern needs at least 3x3 inner corners, got {text!r}")
+    return cols, rows
+
+
+def find_corners(path: Path, pattern: Tuple[int, int]) -> Tuple[Optional[np.ndarray], Tuple[int, int]]:
+    """Sub-pixel inner corners of one image (None when the board is not found) and its (width, height)."""
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise CalibrationError(f"{path}: cannot read it as an image")
+    found, corners = cv2.findChessboardCorners(gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    size = (gray.shape[1], gray.shape[0])
+    if not found:
+        return None, size
+    return cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), _SUBPIX_CRITERIA), size
+
+
+def calibrate(paths: Sequence[Path], pattern: Tuple[int, int], square: float) -> dict:
+    """Calibrate from image files; returns K, dist, size, rms and the images used and skipped."""
+    grid = np.zeros((pattern[0] * pattern[1], 3), np.float32)
+    grid[:, :2] = np.mgrid[0:pattern[0], 0:pattern[1]].T.reshape(-1, 2) * square
+    object_points: List[np.ndarray] = []
+    image_points: List[np.ndarray] = []
+    used: List[str] = []
+    skipped: List[str] = []
+    size: Optional[Tuple[int, int]] = None
+    for path in paths:
+        corners, image_size = find_corners(path, pattern)
+        if size is not None and image_size != size:
+            raise CalibrationError(f"{path}: image is {image_size[0]}x{image_size[1]}, the others {size[0]}x{size[1]}")
+        size = image_size
+        if corners is None:
+            skipped.append(str(path))
+            continue
+        object_points.append(grid)
+        image_points.append(corners)
+        used.append(str(path))
+    if len(used) < MIN_VIEWS:
+        raise CalibrationError(
+            f"the {pattern[0]}x{pattern[1]} board was found in {len(used)} of {len(paths)} images; at least {MIN_VIEWS} needed"
+        )
+    assert size is not None
+    rms, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, size, None, None)
+    return {"K": K, "dist": dist.ravel()[:5], "size": size, "rms": float(rms), "used": used, "skipped": skipped}
+
+
+def config_yaml(result: dict, resolution: str) -> str:
+    """The calibration as a robot-config override (robot.camera.resolutions.<resolution>)."""
+    K, dist, (width, height) = result["K"], result["dist"], result["size"]
+    entry = {
+        "width": int(width), "height": int(height),
+        "fx": round(float(K[0, 0]), 4), "fy": round(float(K[1, 1]), 4),
+        "cx": round(float(K[0, 2]), 4), "cy": round(float(K[1, 2]), 4),
+        "dist": [round(float(d), 6) for d in dist],
+    }
+    header = (
+        f"# tools/calibrate_camera.py: {len(result['used'])} views, reprojection RMS {result['rms']:.3f} px\n"
+        "# Pass with --config to override the robot model's intrinsics at this resolution.\n"
+    )
+    return header + yaml.safe_dump({"robot": {"camera": {"resolutions": {resolution: entry}}}}, sort_keys=False)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="calibrate_camera", description=__doc__.split("\n\n")[0])
+    parser.add_argument("images", nargs="+", type=Path, help="chessboard images (all the same size)")
+    parser.add_argument("--pattern", type=parse_pattern, required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    parser.add_argument("--square", type=float, required=True, help="side of one square, m")
+    parser.add_argument("--resolution", default="vga", help="resolution name in the robot config (vga, qvga)")
+    parser.add_argument("--output", type=Path, help="YAML file to write (default: print)")
+    args = parser.parse_args(argv)
+    if not args.square > 0:
+        parser.error(f"--square must be a positive length in metres, got {args.square}")
+    try:
+        result = calibrate(args.images, args.pattern, args.square)
+        text = config_yaml(result, args.resolution)
+        if args.output is None:
+            sys.stdout.write(text)
+        else:
+            args.output.write_text(text, encoding="utf-8")
+    except (CalibrationError, OSError, cv2.error) as exc:
+        print(f"calibrate_camera: error: {exc}", file=sys.stderr)
+        return 2
+    for path in result["skipped"]:
+        print(f"calibrate_camera: board not found in {path} (skipped)", file=sys.stderr)
+    print(f"calibrate_camera: {len(result['used'])} views, RMS {result['rms']:.3f} px", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
