@@ -44,6 +44,8 @@ def parse_pattern(text: str) -> Tuple[int, int]:
 
 def find_corners(path: Path, pattern: Tuple[int, int]) -> Tuple[Optional[np.ndarray], Tuple[int, int]]:
     """Sub-pixel inner corners of one image (None when the board is not found) and its (width, height)."""
+    if not path.is_file():
+        raise CalibrationError(f"{path}: no such file")
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise CalibrationError(f"{path}: cannot read it as an image")

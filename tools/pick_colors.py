@@ -49,6 +49,8 @@ def sample_hsv(regions: Sequence[Region]) -> np.ndarray:
     """HSV pixels (N x 3) of all regions."""
     samples = []
     for path, (x, y, w, h) in regions:
+        if not path.is_file():
+            raise SampleError(f"{path}: no such file")
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise SampleError(f"{path}: cannot read it as an image")
