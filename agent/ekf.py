@@ -76,6 +76,7 @@ from pathlib import Path
 from typing import Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from numba import njit
 from scipy.stats import chi2
 
 from agent.camera import wrap_angle
@@ -228,6 +229,10 @@ def rollout_covariance(
     all) and the camera is outside the estimated cylinder, applies a noise-free update at the
     mean ``x`` with measurement noise ``R`` (2x2, default :data:`NOMINAL_R`; pass ``params.R``).
     ``P`` is (3, 3) or one per candidate (K, 3, 3).
+
+    Closed form in a compiled loop (numba) on float64 scalars, no matrix calls: with the rows
+    a = H[0] (a_r = 0), b = H[1], u = P a, w = P b, S = [[a.u, a.w], [a.w, b.w]] + R,
+    P - K S K^T = P - (S11 u u^T - S01 (u w^T + w u^T) + S00 w w^T) / det S.
     """
     x = np.asarray(x, dtype=float)
     cams = np.asarray(cams, dtype=float)
@@ -241,18 +246,49 @@ def rollout_covariance(
         raise ValueError(f"visible must have shape {(n_cand, n_steps)}, got {mask.shape}")
     _, _, d2, r, _ = _geometry(x, cams)
     mask = mask & (d2 > r * r)
-    H = measurement_jacobian(x, cams, width_model)  # (K, D, 2, 3)
-    P = np.broadcast_to(np.asarray(P, dtype=float), (n_cand, 3, 3)).copy()
-    Ht = H.swapaxes(-1, -2)  # (K, D, 3, 2)
-    weight = mask[..., None, None].astype(float)  # a zero gain skips the update
-    for j in range(n_steps):
-        P += Q_step
-        PHt = P @ Ht[:, j]  # (K, 3, 2)
-        gain = PHt @ _inverse_spd(H[:, j] @ PHt + R) * weight[:, j]
-        # P - K S K^T = P - K (P H^T)^T: equal to the Joseph form for the optimal gain
-        P -= gain @ PHt.swapaxes(-1, -2)
-        P = 0.5 * (P + P.swapaxes(-1, -2))
-    return P
+    H = np.where(mask[..., None, None], measurement_jacobian(x, cams, width_model), 0.0)  # zero rows: no update
+    P = np.broadcast_to(np.asarray(P, dtype=float), (n_cand, 3, 3))
+    return _rollout_kernel(np.ascontiguousarray(0.5 * (P + P.swapaxes(-1, -2))), np.ascontiguousarray(H), Q_step, R)
+
+
+@njit(cache=True)
+def _rollout_kernel(P0: np.ndarray, H: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The loop of :func:`rollout_covariance` on scalars: P0 (K, 3, 3), H (K, D, 2, 3) -> (K, 3, 3)."""
+    n_cand, n_steps = H.shape[0], H.shape[1]
+    out = np.empty((n_cand, 3, 3))
+    for k in range(n_cand):
+        p00, p01, p02, p11, p12, p22 = P0[k, 0, 0], P0[k, 0, 1], P0[k, 0, 2], P0[k, 1, 1], P0[k, 1, 2], P0[k, 2, 2]
+        for j in range(n_steps):
+            p00 += Q[0, 0]
+            p01 += Q[0, 1]
+            p02 += Q[0, 2]
+            p11 += Q[1, 1]
+            p12 += Q[1, 2]
+            p22 += Q[2, 2]
+            a0, a1 = H[k, j, 0, 0], H[k, j, 0, 1]
+            b0, b1, b2 = H[k, j, 1, 0], H[k, j, 1, 1], H[k, j, 1, 2]
+            u0 = p00 * a0 + p01 * a1
+            u1 = p01 * a0 + p11 * a1
+            u2 = p02 * a0 + p12 * a1
+            w0 = p00 * b0 + p01 * b1 + p02 * b2
+            w1 = p01 * b0 + p11 * b1 + p12 * b2
+            w2 = p02 * b0 + p12 * b1 + p22 * b2
+            s00 = a0 * u0 + a1 * u1 + R[0, 0]
+            s01 = a0 * w0 + a1 * w1 + R[0, 1]
+            s11 = b0 * w0 + b1 * w1 + b2 * w2 + R[1, 1]
+            scale = 1.0 / (s00 * s11 - s01 * s01)
+            cu, cx, cw = s11 * scale, -s01 * scale, s00 * scale  # P -= cu u u^T + cx (u w^T + w u^T) + cw w w^T
+            p00 -= cu * u0 * u0 + 2.0 * cx * u0 * w0 + cw * w0 * w0
+            p01 -= cu * u0 * u1 + cx * (u0 * w1 + w0 * u1) + cw * w0 * w1
+            p02 -= cu * u0 * u2 + cx * (u0 * w2 + w0 * u2) + cw * w0 * w2
+            p11 -= cu * u1 * u1 + 2.0 * cx * u1 * w1 + cw * w1 * w1
+            p12 -= cu * u1 * u2 + cx * (u1 * w2 + w1 * u2) + cw * w1 * w2
+            p22 -= cu * u2 * u2 + 2.0 * cx * u2 * w2 + cw * w2 * w2
+        out[k, 0, 0], out[k, 1, 1], out[k, 2, 2] = p00, p11, p22
+        out[k, 0, 1] = out[k, 1, 0] = p01
+        out[k, 0, 2] = out[k, 2, 0] = p02
+        out[k, 1, 2] = out[k, 2, 1] = p12
+    return out
 
 
 def _size_from_width(delta: float, width_model: WidthModel) -> Tuple[float, float]:
