@@ -191,3 +191,56 @@ def test_bad_transform_or_odometry_raise_value_error(params, robot, room):
         localizer.on_frame(image, np.eye(4), (0, math.nan, 0), 0.0)
     with pytest.raises(ValueError, match="odom"):
         localizer.on_odometry("abc", 0.0)
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_walking_fixes_and_odometry_track_the_true_pose(params, perception, robot, room):
+    """Sim: 12 s circling the object (speed-scale error, slip, sway), 5 frames/s at QVGA, states in
+    between: after the first fixes the pose stays within 3 cm of the truth; dead reckoning drifts."""
+    clock = _Clock()
+    world = SimWorld("can", robot, "qvga", seed=3, clock=clock)
+    localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"), perception)
+    obj = (*world.scenario.position, 0.1)
+    world.walk(0.08, 0.0, 0.08)
+    errors, fixes = [], 0
+    for _ in range(60):
+        clock.t += 0.1
+        world.set_head(*head_angles_towards(robot, world.truth()["robot_pose"], obj), 1.0)
+        state = world.state()
+        localizer.on_odometry(state.odom, state.stamp)
+        clock.t += 0.1
+        frame = world.render()
+        fixes += localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp) is not None
+        errors.append(pose_error(localizer.pose, world.truth()["robot_pose"]))
+    errors = np.array(errors[5:])
+    assert fixes >= 55
+    assert errors[:, 0].max() < 0.03 and errors[:, 0].mean() < 0.015 and errors[:, 1].max() < math.radians(1.5)
+    truth = world.truth()
+    dead_reckoning = compose(tuple(truth["odom_origin"]), tuple(truth["odom"]))
+    assert pose_error(dead_reckoning, truth["robot_pose"])[0] > 3 * errors[-1, 0]
+
+
+def test_fix_covariance_is_not_overconfident(params, perception, robot, room):
+    """NEES of single-frame fixes over random orbit views: below the chi-square(3) 99 % bound."""
+    world = SimWorld("can", robot, "qvga", seed=7)
+    camera = camera_of(robot, "qvga")
+    rng = np.random.default_rng(1)
+    ox, oy = world.scenario.position
+    nees = []
+    for _ in range(20):
+        d, az = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi)
+        pose = (ox + d * math.cos(az), oy + d * math.sin(az), az + math.pi)
+        world.teleport(pose, head_angles_towards(robot, pose, (ox, oy, 0.1)))
+        frame = world.render()
+        fix = RobotLocalizer(params, room, camera, perception).on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
+        truth = world.truth()["robot_pose"]
+        e = np.array([fix.pose[0] - truth[0], fix.pose[1] - truth[1], wrap_angle(fix.pose[2] - truth[2])])
+        nees.append(e @ np.linalg.solve(fix.covariance, e))
+    assert np.max(nees) < 11.34 and np.mean(nees) < 3.0
