@@ -150,7 +150,7 @@ def _checked_view(mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> Tu
     dist = np.asarray(camera.dist, dtype=float).ravel()
     if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
         raise ValueError(f"camera.dist: expected 4, 5, 8, 12 or 14 finite coefficients, got {dist.tolist()}")
-    m = np.asarray(mask)
+    m = np.ascontiguousarray(mask)
     if m.shape != (camera.height, camera.width):
         raise ValueError(f"mask: shape {m.shape} does not match the camera image (height, width) = ({camera.height}, {camera.width})")
     if m.dtype not in (np.bool_, np.uint8):
@@ -161,7 +161,8 @@ def _checked_view(mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> Tu
     R = T[:3, :3]
     if not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ValueError("T_WC: not a rigid transform (rotation must be orthonormal with det +1, last row 0 0 0 1)")
-    return (m != 0).astype(np.uint8), camera
+    binary = m.view(np.uint8) if m.dtype == np.bool_ else cv2.threshold(m, 0, 1, cv2.THRESH_BINARY)[1]
+    return binary, camera
 
 
 def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
@@ -219,10 +220,12 @@ class VoxelCarver:
         self._dims = np.array([[n >> level for n in padded] for level in range(self._levels + 1)], dtype=np.int64)
         sizes = [int(np.prod(d)) if level else 0 for level, d in enumerate(self._dims)]
         self._offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        pyramid = [self._counts <= params.tolerance]
-        for _ in range(self._levels):
-            pyramid.append(_pool_any(pyramid[-1], 2))
-        self._alive = np.concatenate([np.zeros(0, bool)] + [level.ravel() for level in pyramid[1:]])
+        self._alive = np.zeros(self._offsets[-1] + sizes[-1], dtype=bool)
+        for level in range(1, self._levels + 1):  # at first a cell lives iff it overlaps the real grid
+            live = -(-np.array(shape) // (1 << level))
+            self._alive[self._offsets[level] : self._offsets[level] + sizes[level]].reshape(self._dims[level])[
+                : live[0], : live[1], : live[2]
+            ] = True
 
     @classmethod
     def from_estimate(
@@ -303,12 +306,6 @@ def load_npz(path: Union[str, Path]) -> Tuple[np.ndarray, np.ndarray, float]:
     """(occupancy, origin, pitch) written by :meth:`VoxelCarver.save_npz`."""
     with np.load(Path(path)) as data:
         return data["occupancy"].astype(bool), data["origin"].astype(float), float(data["pitch"])
-
-
-def _pool_any(grid: np.ndarray, factor: int) -> np.ndarray:
-    """Any-pooling of a 3-D grid by ``factor`` on each axis."""
-    X, Y, Z = grid.shape
-    return grid.reshape(X // factor, factor, Y // factor, factor, Z // factor, factor).any(axis=(1, 3, 5))
 
 
 # Compiled kernels (numba): one view walks the octree depth first, so each cell is tested once, only
@@ -398,7 +395,7 @@ def _vote(level, i, j, k, counts, alive, offsets, dims, tolerance, removed):
                     _refresh(m, a, b, c, counts, alive, offsets, dims, tolerance)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # releases the GIL: a carving thread does not stall the control loop
 def _carve_view(counts, alive, offsets, dims, P, corner, pitch, table, image, tolerance):
     """Carve the whole octree with one view, depth first; returns the number of voxels removed.
 
