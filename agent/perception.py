@@ -15,9 +15,10 @@ rotated into W with T_WC and reduced to a horizontal azimuth a(v). For a vertica
 left/right outline rows lie in the two vertical tangent planes, so
 
     a_l = mean{ a_left(v)  : a_left(v)  >= max_v a_left  - band },
-    a_r = mean{ a_right(v) : a_right(v) <= min_v a_right + band },   band = one pixel's angle,
+    a_r = mean{ a_right(v) : a_right(v) <= min_v a_right + band },   band = edge_band / f_x,
 
-averages out the +-1/2 pixel quantization along the slanted outline, and
+averages out the +-1/2 pixel quantization along the slanted outline (the extreme row alone is
+biased outwards by about half a pixel a side: it is the row whose quantization went furthest out), and
 delta = a_l - a_r, azimuth_W = (a_l + a_r) / 2, phi = wrap(azimuth_W - psi(T_WC)).
 A silhouette within ``border_margin`` of the left or right border is cut by the image: it gives
 a bearing (that of the visible part) and no width, never a wrong one.
