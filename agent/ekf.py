@@ -44,15 +44,30 @@ Without a width (``delta is None``) only the bearing row is used (dof 1). An upd
 lies inside the estimated cylinder (d <= r), or whose inputs are not finite, is rejected with a
 reason; the state never becomes NaN. After an update the radius is projected onto r >= min_radius.
 
-Initialization from the first observation u = (phi, delta, r0) with the radius prior
-r0 ~ N(radius_prior, radius_prior_std^2): the range follows from the width model,
-d = r0 / sin(delta/2) (asin) or d = r0 / tan(delta) (paper_atan), and::
+Initialization from a first observation with a width, u = (phi, delta, r0), radius prior
+r0 ~ N(radius_prior, radius_prior_std^2). One view fixes the bearing and the angular size
+s = r / d = sin(delta/2) (asin; tan(delta) for paper_atan) but not the scale: the range is as
+uncertain as the radius (100 % with the default prior). Gaussian in (xo, yo, r) such a prior puts
+mass at r <= 0 and d <= 0, and the bearing parallax of the next views is hyperbolic in d: the
+MAP then lands near the camera with r -> 0 or 1 to 3 m off with a centimetre covariance, and the
+gate locks out (planner seeds 13, 23, 15, 35). So the filter starts in inverse-range coordinates
+anchored at the first camera a = (ax, ay) (Civera, Davison, Montiel 2008)::
 
-    x0 = (cx + d cos(psi + phi), cy + d sin(psi + phi), r0),   P0 = G diag(s_phi^2, s_delta^2, s_r0^2) G^T
+    y = (beta, rho, s):   x(y) = (ax + cos(beta) / rho, ay + sin(beta) / rho, s / rho)
+    y0 = (psi + phi, s / r0, s),   P_y0 = G diag(s_phi^2, s_delta^2, s_r0^2) G^T,   G = dy0/du
 
-with G = dx0/du: the covariance is the measurement noise and the radius prior propagated, so the
-range is as uncertain as the radius and fully correlated with it. Without a width, u = (phi, d, r0)
-with d ~ N(default_range, default_range_std^2), independent of r0.
+(the radius prior propagated to first order to the inverse radius). h is homogeneous of degree 0
+in (xo - cx, yo - cy, r), so with u = rho (xo - cx, yo - cy, r) = (rho (ax - cx) + cos beta,
+rho (ay - cy) + sin beta, s), h(y) = h(u seen from the origin): smooth through rho = 0, near-linear
+in rho, never r < 0. Updates run on y (the same iterated, gated update, valid iff rho > 0,
+0 < s < 1 and the camera outside); x, P are published as x(y), J P_y J^T (J = dx/dy), and Q is
+mapped by J^-1. Once std(rho) < inverse_range_switch * rho the filter continues on (x, P).
+Without a width, u = (phi, d, r0) with d ~ N(default_range, default_range_std^2), independent of
+r0, in (xo, yo, r) directly: x0 = (cx + d cos(psi + phi), cy + d sin(psi + phi), r0).
+
+Lost estimate: a valid view that is gated, or whose update would leave the state's domain, is
+inconsistent with the estimate; after ``reinitialize_after`` of them in a row the filter restarts
+from the current view (``stats.reinitialized``, and the result's reason says why).
 
 Expected covariance for the planner (DESIGN.md item 7): K candidate camera sequences of D steps are
 rolled forward with synthesized noise-free observations at the predicted mean, so the innovation
@@ -62,7 +77,7 @@ is zero, the mean stays and only the covariance evolves::
 
 (with the optimal gain this equals the filter's Joseph-form update; a test checks the two agree)
 
-batched over K with closed-form 2x2 inverses (:func:`rollout_covariance`).
+in closed form on float64 scalars in a numba-compiled loop (:func:`rollout_covariance`).
 """
 
 from __future__ import annotations
