@@ -329,25 +329,35 @@ class RobotLocalizer:
         T_CW[:3, 3] = tvec.ravel()
         return T_CW, idx
 
-    def _residuals(self, pose: np.ndarray, T_CB: np.ndarray, X: np.ndarray, u: np.ndarray) -> np.ndarray:
-        T_CW = T_CB @ invert(planar_transform(*pose))
-        X_C = X @ T_CW[:3, :3].T + T_CW[:3, 3]
-        return (self.camera.project(X_C) - u).ravel()
+    def _refine_planar(self, pose: Pose, T_BC: np.ndarray, X: np.ndarray, u: np.ndarray, iterations: int = 6):
+        """Gauss-Newton on (x, y, theta) with the analytic Jacobian, in undistorted pixels.
 
-    def _refine_planar(self, pose: Pose, T_BC: np.ndarray, X: np.ndarray, u: np.ndarray, iterations: int = 5):
-        """Gauss-Newton on (x, y, theta) with a forward-difference Jacobian; returns (pose, rms, J)."""
+        X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB X_B + t_CB,  u = (f_x X_C.x / X_C.z + c_x, f_y X_C.y / X_C.z + c_y);
+        dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta = (X_B.y, -X_B.x, 0).
+        Returns (pose, rms, J) with J the 2N x 3 Jacobian at the solution.
+        """
+        K = self.camera.K
+        f, principal = np.array([K[0, 0], K[1, 1]]), K[:2, 2]
+        target = cv2.undistortPoints(u.reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
         T_CB = invert(T_BC)
+        R_CB, t_CB = T_CB[:3, :3], T_CB[:3, 3]
         p = np.array(pose, dtype=float)
-        steps = np.array([1e-6, 1e-6, 1e-6])
         for _ in range(iterations):
-            r = self._residuals(p, T_CB, X, u)
-            J = np.column_stack([(self._residuals(p + np.eye(3)[k] * steps[k], T_CB, X, u) - r) / steps[k] for k in range(3)])
-            dp = np.linalg.lstsq(J, -r, rcond=None)[0]
+            c, s = math.cos(p[2]), math.sin(p[2])
+            d = X - np.array([p[0], p[1], 0.0])
+            X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+            X_C = X_B @ R_CB.T + t_CB
+            z = X_C[:, 2:3]
+            r = (f * X_C[:, :2] / z + principal - target).ravel()
+            dB = np.stack([np.broadcast_to([-c, s, 0.0], X_B.shape), np.broadcast_to([-s, -c, 0.0], X_B.shape),
+                           np.column_stack([X_B[:, 1], -X_B[:, 0], np.zeros(len(X_B))])], axis=2)  # N x 3 x 3
+            dC = np.einsum("ij,njk->nik", R_CB, dB)  # N x 3 (xyz) x 3 (params)
+            J = (f[None, :, None] * (dC[:, :2, :] * z[:, :, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, :, None] ** 2).reshape(-1, 3)
+            dp = np.linalg.solve(J.T @ J, -J.T @ r)
             p += dp
-            if np.linalg.norm(dp) < 1e-9:
+            if np.abs(dp).max() < 1e-10:
                 break
-        r = self._residuals(p, T_CB, X, u)
-        rms = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2.0))
+        rms = float(np.sqrt(np.mean(r**2) * 2.0))
         return (float(p[0]), float(p[1]), wrap_angle(float(p[2]))), rms, J
 
     def _accept_jump(self, prior: Pose, fix: PoseFix) -> bool:

@@ -214,3 +214,22 @@ def test_temple_silhouettes_lie_inside_the_projected_bounding_box(params):
         outside = cv2.distanceTransform(255 - box, cv2.DIST_L2, 5)[silhouette.mask > 0].max()
         assert outside <= 8.0, f"{name}: silhouette reaches {outside:.1f} px outside the projected box"
         assert silhouette.area > 0.3 * np.count_nonzero(box), f"{name}: silhouette too small"
+
+
+def test_cleaning_in_the_masks_bounding_box_equals_full_frame_morphology(params):
+    from agent.perception import _disc, clean_mask
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        mask = np.zeros((120, 160), np.uint8)
+        for _ in range(rng.integers(0, 4)):
+            centre = (int(rng.integers(0, 160)), int(rng.integers(0, 120)))
+            cv2.circle(mask, centre, int(rng.integers(1, 15)), 255, -1)
+        mask[rng.random(mask.shape) < 0.002] = 255
+        p = dataclasses.replace(params, open_radius=int(rng.integers(0, 3)), close_radius=int(rng.integers(0, 4)))
+        full = mask
+        if p.open_radius:
+            full = cv2.morphologyEx(full, cv2.MORPH_OPEN, _disc(p.open_radius))
+        if p.close_radius:
+            full = cv2.morphologyEx(full, cv2.MORPH_CLOSE, _disc(p.close_radius))
+        assert np.array_equal(clean_mask(mask, p), full)
