@@ -218,6 +218,8 @@ def replay_command(args: argparse.Namespace) -> int:
         print(f"replay: {result.compared} outputs ({result.decisions} decisions) from {result.inputs} inputs reproduced exactly",
               file=sys.stderr)
         return 0
+    if result.code_changed:
+        print("replay: note: the agent's code changed since this run (code digest differs)", file=sys.stderr)
     if result.divergence is not None:
         d = result.divergence
         print(f"replay: first divergence on {d.topic} #{d.rank} at t={d.t:.3f}", file=sys.stderr)

@@ -5,7 +5,8 @@ input's raw bytes (:mod:`station.run`). Replay rebuilds the configuration and th
 from the log, feeds the journalled inputs in file order to a fresh :class:`station.pilot.Pilot`,
 and compares each output, byte for byte in its logged JSON form, with the recorded output of the
 same topic and rank. The first mismatch is reported (topic, rank, time, both payloads); a log cut
-by a crash is compared up to its end.
+by a crash is compared up to its end. The run logged a digest of the agent's code: when the code
+has changed since, the result says so (a divergence is then expected, not a bug).
 """
 
 from __future__ import annotations
@@ -25,11 +26,18 @@ from nao_bridge.protocol import Frame, FrameMeta, Info, State, decode
 from station.config import SECTIONS, StationConfig
 from station.mcap_log import LogError, encode_json, read_log
 from station.pilot import Pilot, Step
+from station.run import code_digest
 from station.topics import AGENT_PREFIX, CONFIG, DECISION, FRAME_IMAGE, FRAME_META, INFO, INPUT, STATE
 
 
 def load_setup(path: Union[str, Path]) -> Tuple[StationConfig, Info]:
     """The resolved configuration and the bridge info recorded at the start of a run."""
+    config, info, _ = load_recorded(path)
+    return config, info
+
+
+def load_recorded(path: Union[str, Path]) -> Tuple[StationConfig, Info, Optional[str]]:
+    """Configuration, bridge info and the digest of the agent's code recorded at the start of a run."""
     record: Optional[Dict[str, Any]] = None
     info: Optional[Info] = None
     for message in read_log(path, topics={CONFIG, INFO}):
@@ -43,7 +51,7 @@ def load_setup(path: Union[str, Path]) -> Tuple[StationConfig, Info]:
         raise LogError(f"{path}: no {CONFIG if record is None else INFO} message: not a station run log")
     sections = {name: from_mapping(cls, record[name], source=f"{path}:{CONFIG}.{name}") for name, cls in SECTIONS.items()}
     landmarks = from_mapping(LandmarkMap, record["landmarks"], source=f"{path}:{CONFIG}.landmarks")
-    return StationConfig(landmarks=landmarks, **sections), info
+    return StationConfig(landmarks=landmarks, **sections), info, record.get("code")
 
 
 def iter_inputs(path: Union[str, Path]) -> Iterator[Tuple[Dict[str, Any], Any]]:
@@ -100,6 +108,7 @@ class ReplayResult:
     decisions: int = 0
     divergence: Optional[Divergence] = None
     unmatched: Dict[str, int] = field(default_factory=dict)  # recorded outputs replay did not produce
+    code_changed: bool = False  # the agent's code differs from the run's: a divergence is expected
 
     @property
     def ok(self) -> bool:
@@ -110,13 +119,13 @@ class ReplayResult:
 
 
 def replay(path: Union[str, Path], progress: bool = False) -> ReplayResult:
-    config, info = load_setup(path)
+    config, info, code = load_recorded(path)
     recorded: Dict[str, List[bytes]] = defaultdict(list)
     for message in read_log(path):
         if message.topic.startswith(AGENT_PREFIX):
             recorded[message.topic].append(message.data)
     pilot = Pilot(config, info)
-    result = ReplayResult()
+    result = ReplayResult(code_changed=code != code_digest())
     produced: Dict[str, int] = defaultdict(int)
     log_ended = False
     total = sum(len(v) for v in recorded.values())

@@ -20,6 +20,7 @@ after its raw bytes, so replay can feed the same inputs in the same order. Every
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import queue
 import sys
 import time
@@ -63,10 +64,21 @@ class RunSummary:
     P: Optional[np.ndarray]
 
 
+def code_digest() -> str:
+    """SHA-256 of the agent's code (agent/*.py and the pilot): replay says when it changed since the run."""
+    root = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for path in sorted((root / "agent").glob("*.py")) + [root / "station" / "pilot.py"]:
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
 def config_record(config: StationConfig) -> Dict[str, Any]:
-    """The resolved configuration, as logged on /station/config (replay rebuilds it from this)."""
-    record = {name: dataclasses.asdict(getattr(config, name)) for name in config.section_names}
+    """The resolved configuration, as logged on /station/config (replay rebuilds it from this),
+    with the digest of the agent's code under ``code``."""
+    record: Dict[str, Any] = {name: dataclasses.asdict(getattr(config, name)) for name in config.section_names}
     record["landmarks"] = dataclasses.asdict(config.landmarks)
+    record["code"] = code_digest()
     return record
 
 
