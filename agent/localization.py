@@ -71,7 +71,7 @@ class LocalizationParams:
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
-    color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # look for colour landmarks only below this many ArUco corners
+    color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # colour landmarks only below this many ArUco corners
     odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
@@ -145,7 +145,9 @@ class LandmarkDetector:
         on the full image with ``cv2.cornerSubPix``.
         """
         factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
-        small = gray if factor == 1 else cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
+        small = gray
+        if factor > 1:
+            small = cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
         ids_out: List[object] = []
         world: List[np.ndarray] = []
         image: List[np.ndarray] = []
@@ -356,7 +358,9 @@ class RobotLocalizer:
             dB = np.stack([np.broadcast_to([-c, s, 0.0], X_B.shape), np.broadcast_to([-s, -c, 0.0], X_B.shape),
                            np.column_stack([X_B[:, 1], -X_B[:, 0], np.zeros(len(X_B))])], axis=2)  # N x 3 x 3
             dC = np.einsum("ij,njk->nik", R_CB, dB)  # N x 3 (xyz) x 3 (params)
-            J = (f[None, :, None] * (dC[:, :2, :] * z[:, :, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, :, None] ** 2).reshape(-1, 3)
+            # d(f a / z) = f (da z - a dz) / z^2 for a = x, y
+            J = f[None, :, None] * (dC[:, :2, :] * z[:, :, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, :, None] ** 2
+            J = J.reshape(-1, 3)
             dp = np.linalg.solve(J.T @ J, -J.T @ r)
             p += dp
             if np.abs(dp).max() < 1e-10:
