@@ -12,8 +12,8 @@ rho this gives (when m_W,z < 0, an upright camera)
 
     h_v = C_z + (m_x (x - C_x) + m_y (y - C_y) + rho hypot(m_x, m_y)) / (-m_z).
 
-Voxels. Cubes of edge ``pitch``; voxel (i, j, k) spans corner0 + pitch [i, i+1] x [j, j+1] x [k, k+1]
-and its centre is origin + pitch (i, j, k) with origin = corner0 + pitch / 2.
+Voxels. Cubes of edge ``pitch``; voxel (i, j, k) spans corner + pitch [i, i+1] x [j, j+1] x [k, k+1]
+and its centre is origin + pitch (i, j, k) with origin = corner + pitch / 2.
 
 Projection. [a, b, w]^T = K [R_CW | t_CW] [x; 1], (u, v) = (a / w, b / w); w is the depth.
 
@@ -39,7 +39,7 @@ Q_parent, so B_child is inside B_parent: a parent that is empty in a view has on
 a parent whose B is all silhouette (S = area) has none; only the other cells are split, and only
 their living children are tested. The result equals testing every voxel in every view. Each view
 walks the octree depth first in a numba-compiled kernel (float64 geometry, one O(1) test per cell);
-the NumPy level-by-level version of the same walk was 3 to 4 times slower (docs/carving.md).
+the NumPy level-by-level version of the same walk took 3.5 times the CPU time (docs/carving.md).
 
 Incremental = batch. A voxel's fate depends only on how many views say it is empty, whatever
 their order, so adding views one at a time (live) or all at once (offline) gives the same grid.
