@@ -22,7 +22,6 @@ stand-in's and the link's own timestamps; they are not speed benchmarks.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import signal
 import subprocess
 import sys
@@ -34,20 +33,14 @@ from typing import List, Optional
 import pytest
 
 import nao_bridge.bridge as bridge_module
-from nao_bridge.bridge import Bridge, BridgeParams
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_bridge.protocol import RobotKeys, WalkCommand, encode
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
 from nao_bridge.standin import StandIn
 from nao_bridge.transport import TransportConfig, open_session
 from station.launch import LocalBridge
 from station.link import BridgeLink
 from station.mcap_log import read_log
-from tests.zenoh_peers import free_port, wait_until
+from tests.zenoh_peers import bridge_on_standin, free_port, wait_until
 
-MODEL = load_robot_model()
 KEYS = RobotKeys("nao")
 PY = sys.executable
 STOP_WITHIN = 0.3  # s: SIGKILLed station -> stopMove (issue 8)
@@ -55,8 +48,9 @@ NOTICE_WITHIN = 2.0  # s: frozen bridge -> station notices (issue 8)
 
 STATION_SCRIPT = """
 import sys, time
+from nao_bridge.transport import TransportConfig
 from station.link import BridgeLink
-link = BridgeLink(sys.argv[1], "nao", lease_ms=1000)
+link = BridgeLink(TransportConfig(connect=(sys.argv[1],), lease_ms=1000), "nao")
 link.fetch_info(timeout=10.0)
 link.start()
 print("walking", flush=True)
@@ -80,18 +74,10 @@ while True:
 
 @pytest.fixture
 def robot():
-    """The real bridge (plain transport) on the NAOqi backend, served by the stand-in: (bridge, standin, port)."""
+    """The real bridge (plain transport) on the NAOqi stand-in: (bridge, standin, port)."""
     port = free_port()
-    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
-    params = dataclasses.replace(params, resolution="qvga", fps=5.0,
-                                 transport=TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)))
-    with StandIn(SimWorld("can", MODEL, resolution="qvga", seed=2)) as standin:
-        bridge = Bridge(NaoqiBackend(standin.url, MODEL, params.naoqi, "qvga", params.fps), MODEL, params, "naoqi")
-        bridge.start()
-        try:
-            yield bridge, standin, port
-        finally:
-            bridge.close()
+    with bridge_on_standin(TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), seed=2) as (bridge, standin):
+        yield bridge, standin, port
 
 
 def station_process(port: int) -> subprocess.Popen:
@@ -152,7 +138,7 @@ def test_station_frozen_is_stopped_by_the_deadman_then_dropped_after_its_lease(r
 def test_bridge_frozen_or_killed_is_noticed_by_the_station_within_2_s(tmp_path, fault):
     (tmp_path / "bridge.yaml").write_text("bridge:\n  resolution: qvga\n  fps: 5.0\n")
     bridge = LocalBridge(["--sim", "--config", str(tmp_path / "bridge.yaml")], tmp_path / "bridge.log")
-    link = BridgeLink(bridge.endpoint, "nao", lease_ms=1000)
+    link = BridgeLink(TransportConfig(connect=(bridge.endpoint,), lease_ms=1000), "nao")
     try:
         link.fetch_info(timeout=20.0)
         link.start()

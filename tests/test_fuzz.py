@@ -32,10 +32,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nao_bridge.bridge import Bridge, BridgeParams
+from nao_bridge.bridge import BridgeParams
 from nao_bridge.config import CONFIG_DIR, ConfigError, load
 from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
-from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_bridge.protocol import (
     FRAME_MAGIC,
     MESSAGE_TYPES,
@@ -50,14 +49,11 @@ from nao_bridge.protocol import (
     encode,
     to_dict,
 )
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.standin import StandIn
 from nao_bridge.transport import TransportConfig, open_session
 from station.config import StationParams
 from station.mcap_log import McapLog, read_log
 from tests.test_protocol import samples
-from tests.zenoh_peers import free_port, wait_until
+from tests.zenoh_peers import bridge_on_standin, free_port, wait_until
 
 CI_EXAMPLES = int(os.environ.get("FUZZ_CI_EXAMPLES", "400"))
 LONG_EXAMPLES = int(os.environ.get("FUZZ_LONG_EXAMPLES", "20000"))
@@ -328,13 +324,7 @@ def test_hostile_commands_through_the_bridge_never_move_the_robot():
     hostile = st.one_of(st.binary(max_size=200), mutated(to_dict(VALID["cmd.walk"])).map(dumps),
                         mutated(to_dict(VALID["cmd.head"])).map(dumps))
     port = free_port()
-    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
-    params = dataclasses.replace(params, resolution="qvga", fps=2.0,
-                                 transport=TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)))
-    model = load_robot_model()
-    with StandIn(SimWorld("can", model, resolution="qvga", seed=3)) as standin:
-        bridge = Bridge(NaoqiBackend(standin.url, model, params.naoqi, "qvga", params.fps), model, params, "naoqi")
-        bridge.start()
+    with bridge_on_standin(TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), seed=3, fps=2.0) as (bridge, standin):
         session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         try:
             token = session.liveliness().declare_token(RobotKeys("nao").station_alive)
@@ -356,7 +346,6 @@ def test_hostile_commands_through_the_bridge_never_move_the_robot():
             token.undeclare()
         finally:
             session.close()
-            bridge.close()
 
 
 def _decodes(payload: bytes, cls: type) -> bool:

@@ -18,15 +18,10 @@ from typing import List
 import pytest
 import zenoh
 
-from nao_bridge.bridge import Bridge, BridgeParams
 from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
-from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_bridge.protocol import RobotKeys, WalkCommand, encode
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.standin import StandIn
 from nao_bridge.transport import TransportConfig, UserPassword, access_control, open_session
-from tests.zenoh_peers import free_port, lab_certificates, wait_until
+from tests.zenoh_peers import bridge_on_standin, free_port, lab_certificates, wait_until
 from tools.make_certs import CertError, make_lab_certificates
 from tools.make_certs import main as make_certs_main
 
@@ -184,13 +179,8 @@ def test_user_password_is_required_on_top_of_the_certificate(certs, tmp_path):
 
 
 def test_real_bridge_moves_only_for_the_station(certs, rogue_certs):
-    model = load_robot_model()
-    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
     port = free_port()
-    params = dataclasses.replace(params, resolution="qvga", transport=bridge_options(certs, port))
-    with StandIn(SimWorld("can", model, resolution="qvga", seed=1)) as standin:
-        bridge = Bridge(NaoqiBackend(standin.url, model, params.naoqi, "qvga", 15.0), model, params, "naoqi")
-        bridge.start()
+    with bridge_on_standin(bridge_options(certs, port), seed=1) as (bridge, standin):
         sessions = []
         try:
             station = peer("station", certs, port)
@@ -217,7 +207,6 @@ def test_real_bridge_moves_only_for_the_station(certs, rogue_certs):
         finally:
             for session in sessions:
                 session.close()
-            bridge.close()
 
 
 # -- configuration -------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ from typing import Dict, List
 import pytest
 
 from nao_bridge.protocol import State, decode
+from nao_bridge.transport import TransportConfig
 from station.launch import LocalBridge
 from station.link import BridgeLink
 
@@ -45,7 +46,7 @@ def proc_status(pid: int) -> Dict[str, float]:
 
 def mission(endpoint: str) -> Dict[str, int]:
     """One station session: info, subscriptions, walking at 10 Hz with everything drained, stop, close."""
-    link = BridgeLink(endpoint, "nao", lease_ms=1000)
+    link = BridgeLink(TransportConfig(connect=(endpoint,), lease_ms=1000), "nao")
     counts = {"frames": 0, "states": 0, "walking_states": 0}
     try:
         link.fetch_info(timeout=20.0)

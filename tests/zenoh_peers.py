@@ -1,19 +1,25 @@
-"""Helpers for tests with real Zenoh sessions on loopback: free ports, lab certificates, waiting."""
+"""Helpers for tests with real Zenoh sessions on loopback: free ports, lab certificates, waiting,
+and the real bridge on the NAOqi stand-in."""
 
 from __future__ import annotations
 
-import socket
+import contextlib
+import dataclasses
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator, Tuple
 
+from nao_bridge.bridge import Bridge, BridgeParams
+from nao_bridge.config import CONFIG_DIR, load
+from nao_bridge.naoqi_backend import NaoqiBackend
+from nao_bridge.robot_model import load_robot_model
+from nao_bridge.sim import SimWorld
+from nao_bridge.standin import StandIn
+from nao_bridge.transport import TransportConfig
+from station.launch import free_port
 from tools.make_certs import make_lab_certificates
 
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+__all__ = ["bridge_on_standin", "free_port", "lab_certificates", "wait_until"]
 
 
 def lab_certificates(folder: Path) -> Path:
@@ -30,3 +36,18 @@ def wait_until(condition: Callable[[], bool], timeout: float, poll: float = 0.01
             return True
         time.sleep(poll)
     return condition()
+
+
+@contextlib.contextmanager
+def bridge_on_standin(transport: TransportConfig, seed: int = 0, fps: float = 5.0) -> Iterator[Tuple[Bridge, StandIn]]:
+    """The real bridge on the NAOqi backend, served by the libqi stand-in that records every ALMotion call."""
+    model = load_robot_model()
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
+    params = dataclasses.replace(params, resolution="qvga", fps=fps, transport=transport)
+    with StandIn(SimWorld("can", model, resolution="qvga", seed=seed)) as standin:
+        bridge = Bridge(NaoqiBackend(standin.url, model, params.naoqi, "qvga", fps), model, params, "naoqi")
+        bridge.start()
+        try:
+            yield bridge, standin
+        finally:
+            bridge.close()
