@@ -13,7 +13,8 @@ One pass of the loop (single thread; Zenoh callbacks only enqueue):
     flush the log about once a second
 
 Every input handed to the pilot is journalled on ``/station/input`` (kind, station time t) right
-after its raw bytes, so replay can feed the same inputs in the same order. Every decision with
+after its raw bytes, so replay can feed the same inputs in the same order. The log writes of a
+pass are queued and written, in order, once its commands are sent. Every decision with
 ``stop`` sends a zero walk command; the robot is stopped before the loop returns, on every path.
 """
 
@@ -27,7 +28,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -106,6 +107,7 @@ class ControlLoop:
         self._t_tick = -float("inf")
         self._interrupt_sent = False
         self._phase: Optional[Phase] = None
+        self._pending: List[Tuple[Callable[..., None], Tuple[Any, ...]]] = []
 
     def run(self) -> RunSummary:
         t_start = self.clock()
@@ -120,6 +122,7 @@ class ControlLoop:
             traceback.print_exc()
         finally:
             self._send_stop()
+            self._commit()
             x, P = self.pilot.ekf.x, self.pilot.ekf.P
             carver = self.carving.finish(x, P)
             if carver is not None:
@@ -176,8 +179,18 @@ class ControlLoop:
             if plan.outputs:
                 self.plan_times.append(self.clock() - t_plan)
             self._apply(plan, t)
+        self._commit()
         self.log.maybe_flush()
         return finished
+
+    def _later(self, write: Callable[..., None], *args: Any) -> None:
+        """Queue a log write (in order) until the pass's commands are out: logging never delays them."""
+        self._pending.append((write, args))
+
+    def _commit(self) -> None:
+        pending, self._pending = self._pending, []
+        for write, args in pending:
+            write(*args)
 
     def _drain(self, timeout: float) -> List[Received]:
         events: List[Received] = []
@@ -201,9 +214,9 @@ class ControlLoop:
         try:
             message = decode(event.payload, cls)
         except ProtocolError as exc:
-            self.log.json(REJECTED, {"t": event.t, "topic": topic, "reason": exc.reason, "detail": str(exc)}, event.t, STATION_SCHEMA)
+            self._later(self.log.json, REJECTED, {"t": event.t, "topic": topic, "reason": exc.reason, "detail": str(exc)}, event.t, STATION_SCHEMA)
             return None
-        self.log.json(topic, event.payload, event.t, json_schema(cls))
+        self._later(self.log.json, topic, event.payload, event.t, json_schema(cls))
         return message
 
     def _frame_log(self, event: Received) -> Optional[Frame]:
@@ -211,28 +224,29 @@ class ControlLoop:
         try:
             frame = decode_frame(event.payload)
         except ProtocolError as exc:
-            self.log.json(REJECTED, {"t": event.t, "topic": FRAME_META, "reason": exc.reason, "detail": str(exc)}, event.t, STATION_SCHEMA)
+            self._later(self.log.json, REJECTED, {"t": event.t, "topic": FRAME_META, "reason": exc.reason, "detail": str(exc)}, event.t, STATION_SCHEMA)
             return None
-        self.log.json(FRAME_META, frame.meta_json, event.t, json_schema(type(frame.meta)))
-        self.log.proto(FRAME_IMAGE, foxglove.compressed_image(frame.meta.stamp, frame.jpeg), event.t)
+        self._later(self.log.json, FRAME_META, frame.meta_json, event.t, json_schema(type(frame.meta)))
+        self._later(self.log.proto, FRAME_IMAGE, foxglove.compressed_image(frame.meta.stamp, frame.jpeg), event.t)
         if self.frames_received == 1:
-            self.log.proto(CALIBRATION, foxglove.camera_calibration(frame.meta.stamp, self.camera), event.t)
+            self._later(self.log.proto, CALIBRATION, foxglove.camera_calibration(frame.meta.stamp, self.camera), event.t)
         return frame
 
     def _journal(self, kind: str, t: float, **extra: Any) -> None:
-        self.log.json(INPUT, {"kind": kind, "t": t, **extra}, t, STATION_SCHEMA)
+        self._later(self.log.json, INPUT, {"kind": kind, "t": t, **extra}, t, STATION_SCHEMA)
 
     # outputs ------------------------------------------------------------------------------------
 
     def _apply(self, step: Step, t: float) -> bool:
         for topic, payload in step.outputs:
-            self.log.json(topic, payload, t, {"title": f"agent{topic.replace('/', '.')}", "type": "object"})
-            self._visualize(topic, payload, t)
+            self._later(self.log.json, topic, payload, t, {"title": f"agent{topic.replace('/', '.')}", "type": "object"})
+            self._later(self._visualize, topic, payload, t)
         if step.keyframe is not None:
             mask, T_WC = step.keyframe
             self.carving.submit(mask, T_WC, self.pilot.ekf.x, self.pilot.ekf.P)
             self._keyframe_poses.append(T_WC)
-            self.log.proto(SCENE_KEYFRAMES, foxglove.frusta(t, self.camera, self._keyframe_poses), t)
+            poses = list(self._keyframe_poses)
+            self._later(lambda: self.log.proto(SCENE_KEYFRAMES, foxglove.frusta(t, self.camera, poses), t))
         decision = step.decision
         if decision is None:
             return False
@@ -246,6 +260,7 @@ class ControlLoop:
         return decision.finished
 
     def _visualize(self, topic: str, payload: Dict[str, Any], t: float) -> None:
+        """Foxglove views of an agent output (runs inside ``_commit``: writes directly)."""
         if topic == EKF and payload["x"] is not None:
             self.log.proto(SCENE_OBJECT, foxglove.object_estimate(t, np.asarray(payload["x"]), np.asarray(payload["P"])), t)
         elif topic == POSE:
@@ -256,13 +271,13 @@ class ControlLoop:
     def _send_walk(self, vx: float, vy: float, omega: float) -> None:
         command = self.link.send_walk(vx, vy, omega, self.config.station.walk_ttl)
         t = self.clock()
-        self.log.json(CMD_WALK, encode(command), t, json_schema(WalkCommand))
+        self._later(self.log.json, CMD_WALK, encode(command), t, json_schema(WalkCommand))
 
     def _send_head(self, yaw: float, pitch: float) -> None:
         yaw, pitch = self.pilot.robot.head.clamp(yaw, pitch)
         command = self.link.send_head(yaw, pitch, self.config.station.head_speed)
         t = self.clock()
-        self.log.json(CMD_HEAD, encode(command), t, json_schema(HeadCommand))
+        self._later(self.log.json, CMD_HEAD, encode(command), t, json_schema(HeadCommand))
 
     def _send_stop(self) -> None:
         try:
