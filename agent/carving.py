@@ -270,15 +270,19 @@ class VoxelCarver:
 
     def metrics(self) -> HullMetrics:
         """Volume (voxel count x pitch^3), axis extents of the occupied voxels, centroid of their centres."""
-        idx = np.argwhere(self.occupancy)
-        if not len(idx):
+        occupancy = self.occupancy
+        count = int(np.count_nonzero(occupancy))
+        if not count:
             return HullMetrics(0.0, 0.0, 0.0, 0.0, None, None, None)
-        lo = self.corner + self.pitch * idx.min(axis=0)
-        hi = self.corner + self.pitch * (idx.max(axis=0) + 1)
+        # Occupied voxels per slice along each axis: extents and centroid without listing the voxels.
+        slices = [occupancy.sum(axis=tuple(a for a in range(3) if a != axis), dtype=np.int64) for axis in range(3)]
+        first = np.array([np.flatnonzero(s)[0] for s in slices])
+        last = np.array([np.flatnonzero(s)[-1] for s in slices])
+        lo, hi = self.corner + self.pitch * first, self.corner + self.pitch * (last + 1)
         width, depth, height = (float(e) for e in hi - lo)
-        centroid = self.origin + self.pitch * idx.mean(axis=0)
+        centroid = self.origin + self.pitch * np.array([s @ np.arange(len(s)) for s in slices]) / count
         return HullMetrics(
-            volume=len(idx) * self.pitch**3,
+            volume=count * self.pitch**3,
             width=width,
             depth=depth,
             height=height,
