@@ -26,13 +26,11 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
                 pitch: Optional[float] = None) -> VoxelCarver:
     """The final model: all views carved in the volume around the estimate (x, P).
 
-    When the estimate is still too uncertain for the volume to fit ``max_voxels`` at the asked
-    pitch, the pitch is coarsened to (volume / max_voxels)^(1/3): a coarse model, not none.
+    Raises ValueError when the estimate is still too uncertain for the volume to fit
+    ``max_voxels`` (a box metres wide would take minutes and carve nothing useful).
     """
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
-    pitch = pitch or (params.pitch if params.cells is None else float(np.max(hi - lo)) / params.cells)
-    fitting = 1.01 * (float(np.prod(hi - lo)) / params.max_voxels) ** (1.0 / 3.0)
-    return carve(views, lo, hi, max(pitch, fitting), params)
+    return carve(views, lo, hi, pitch, params)
 
 
 class CarvingWorker:
