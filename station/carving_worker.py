@@ -1,15 +1,19 @@
 """Live space carving in a worker thread, fed with keyframes; never blocks the control loop.
 
 ``submit`` only enqueues (mask, T_WC, estimate). The worker creates its carver at the first
-keyframe, with the volume around the estimate of that moment (:func:`agent.carving.volume_bounds`,
-which widens it by ``sigma_scale`` standard deviations), and carves every keyframe as it comes:
-the live hull, for progress and the log. ``finish`` drains the queue and carves the final model
-from all keyframes in a volume around the *final* estimate (the grid does not depend on the order
-of views, so this equals ``station carve`` on the log with the same parameters).
+keyframe whose estimate is certain enough (largest centre std <= ``max_position_std``), with the
+volume around that estimate (:func:`agent.carving.volume_bounds`, which widens it by
+``sigma_scale`` standard deviations), carves the keyframes kept so far and then each one as it
+comes: the live hull, for progress and the log. ``finish`` drains the queue and carves the final
+model from all keyframes in a volume around the *final* estimate (the grid does not depend on the
+order of views, so this equals ``station carve`` on the log with the same parameters); an estimate
+still too uncertain gets no model (a box metres wide would take minutes and carve nothing useful),
+and ``error`` says why.
 """
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 from typing import Callable, List, Optional, Tuple
@@ -20,6 +24,11 @@ from agent.camera import CameraModel
 from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, volume_bounds
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
+
+
+def position_std(P: np.ndarray) -> float:
+    """Largest standard deviation of the estimated centre (x, y), m."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(P)[:2, :2])[-1]), 0.0))
 
 
 def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], params: CarvingParams,
@@ -34,9 +43,10 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
 
 
 class CarvingWorker:
-    def __init__(self, params: CarvingParams, camera: CameraModel,
+    def __init__(self, params: CarvingParams, camera: CameraModel, max_position_std: float,
                  on_progress: Callable[[HullMetrics, int], None] = lambda metrics, views: None):
         self.params = params
+        self.max_position_std = max_position_std
         self.camera = camera
         self.views: List[View] = []
         self.live: Optional[VoxelCarver] = None
@@ -56,6 +66,9 @@ class CarvingWorker:
         self._thread.join(timeout)
         if x is None or not self.views:
             return None
+        if position_std(P) > self.max_position_std:
+            self.error = f"no final model: centre std {position_std(P):.3f} m > {self.max_position_std:g} m"
+            return None
         try:
             return carve_views(self.views, x, P, self.params)
         except ValueError as exc:  # e.g. the estimate is still too uncertain for a bounded volume
@@ -74,7 +87,11 @@ class CarvingWorker:
                 continue
             try:
                 if self.live is None:
-                    self.live = VoxelCarver.from_estimate(x[:2], float(x[2]), self.params, P, [view])
+                    if position_std(P) > self.max_position_std:
+                        continue
+                    self.live = VoxelCarver.from_estimate(x[:2], float(x[2]), self.params, P, self.views)
+                    for kept in self.views[:-1]:
+                        self.live.add_view(*kept)
                 self.live.add_view(*view)
                 self._on_progress(self.live.metrics(), len(self.views))
             except ValueError as exc:  # e.g. a volume too large for max_voxels: keep the views, say why

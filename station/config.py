@@ -43,6 +43,7 @@ class StationParams:
     bridge_timeout: float = field(default=20.0, metadata=bounds(1.0, 600.0))
     flush_interval: float = field(default=1.0, metadata=bounds(0.05, 60.0))
     keyframe_min_angle: float = field(default=0.17, metadata=bounds(0.0, 3.2))
+    carve_max_position_std: float = field(default=0.02, metadata=bounds(1e-4, 10.0))
 
 
 SECTIONS: Dict[str, type] = {

@@ -20,6 +20,7 @@ import numpy as np
 
 from agent.mission import Outcome
 from nao_bridge.protocol import State, Truth, decode
+from station.carving_worker import position_std
 from station.mcap_log import read_log
 from station.topics import COVERAGE, KEYFRAME, STATE, TRUTH
 
@@ -64,7 +65,7 @@ def build_result(summary, log_path: Path, files: Dict[str, Any], resolution: str
     if x is not None:
         estimate = {
             "x": float(x[0]), "y": float(x[1]), "r": float(x[2]), "covariance": np.asarray(P).tolist(),
-            "position_std": math.sqrt(max(float(np.linalg.eigvalsh(P[:2, :2])[-1]), 0.0)),
+            "position_std": position_std(P),
             "radius_std": math.sqrt(max(float(P[2, 2]), 0.0)),
         }
     truth = figures["truth"]

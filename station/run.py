@@ -94,7 +94,7 @@ class ControlLoop:
         self.interrupted = interrupted
         self.pilot = Pilot(config, info)
         self.camera = camera_from_info(info)
-        self.carving = CarvingWorker(config.carving, self.camera, self._on_carving)
+        self.carving = CarvingWorker(config.carving, self.camera, config.station.carve_max_position_std, self._on_carving)
         self.frames_received = 0
         self.frames_processed = 0
         self.latencies: List[float] = []  # frame arrival -> command sent, s (benchmark)
