@@ -16,6 +16,7 @@ in a child process when the test kills or freezes it.
 | log writer SIGKILLed | the MCAP log reads (with a warning) up to its last flush, <= about 1 s before the kill |
 | ``station start`` SIGKILLed mid-walk | stopMove within 300 ms; ``station report`` and ``station replay`` read its log, with a warning |
 | bridge frozen mid-mission | the station journals ``bridge_lost`` within 2 s, ends the mission, writes result.json, exits 1 |
+| frames with corrupt JPEG, wrong size, 10 s late, seq gaps | all logged; undecodable ones rejected; the mission goes on |
 
 Timing bounds here are the safety requirements of the issue (300 ms, 2 s), measured on the
 stand-in's and the link's own timestamps; they are not speed benchmarks.
@@ -34,16 +35,18 @@ import types
 from pathlib import Path
 from typing import List, Optional
 
+import cv2
+import numpy as np
 import pytest
 
 import nao_bridge.bridge as bridge_module
-from nao_bridge.protocol import RobotKeys, WalkCommand, encode
+from nao_bridge.protocol import FrameMeta, RobotKeys, WalkCommand, encode, encode_frame
 from nao_bridge.standin import StandIn
 from nao_bridge.transport import TransportConfig, open_session
 from station.launch import LocalBridge
 from station.link import BridgeLink
 from station.mcap_log import read_log
-from station.topics import INPUT
+from station.topics import FRAME_META, FRAME_REJECTED, INPUT
 from tests.zenoh_peers import bridge_on_standin, free_port, wait_until
 
 KEYS = RobotKeys("nao")
@@ -377,3 +380,34 @@ def test_bridge_frozen_mid_mission_ends_it_cleanly_as_bridge_lost(tmp_path):
             if m.json()["kind"] == "bridge_lost"]
     assert len(lost) == 1 and lost[0] - frozen <= NOTICE_WITHIN  # then the final carve and outputs
     assert ended > lost[0]
+
+
+def test_corrupt_late_and_missing_frames_are_rejected_and_the_mission_goes_on(robot, tmp_path):
+    """Injected on the bridge's own frame publisher: corrupt JPEG, wrong size, stamps 10 s late, seq gaps."""
+    bridge, standin, port = robot
+    proc = start_station(tmp_path, port)
+    try:
+        assert wait_until(lambda: len(standin.calls_to("ALMotion.move")) > 0, 90.0), "never walked"
+        meta = dict(seq=10**6, stamp=time.time() - 10.0, width=320, height=240, encoding="jpeg", head_yaw=0.0,
+                    head_pitch=0.3, T_BC=tuple(float(x) for x in np.eye(4).ravel()), odom=(0.0, 0.0, 0.0),
+                    resolution="qvga")
+        small = cv2.imencode(".jpg", np.zeros((10, 10, 3), np.uint8))[1].tobytes()
+        late = cv2.imencode(".jpg", np.zeros((240, 320, 3), np.uint8))[1].tobytes()
+        for i in range(10):
+            for jpeg in (b"\xff\xd8" + bytes(range(256)) * 4, small, late):
+                fields = dict(meta, seq=meta["seq"] + 7 * i, stamp=meta["stamp"] + 0.01 * i)
+                bridge._frame_pub.put(encode_frame(FrameMeta(**fields), jpeg))  # noqa: SLF001 - fault injection
+            time.sleep(0.1)
+        injected = time.time()
+        assert wait_until(lambda: len(moves_after(standin, injected + 1.0)) > 0, 15.0), "the mission stopped"
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(240.0) == 1
+    finally:
+        proc.kill()
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert "interrupted" in json.dumps(result) and "station error" not in json.dumps(result)
+    log = tmp_path / "run" / "run.mcap"
+    logged = [m.json()["seq"] for m in read_log(log, topics={FRAME_META}) if m.json()["seq"] >= 10**6]
+    assert len(logged) == 30  # the log keeps every frame received, processed or not
+    assert len(list(read_log(log, topics={FRAME_REJECTED}))) > 0  # the loop processes only the newest of a pass
