@@ -9,6 +9,10 @@
   hide the object or the landmarks), the station is a separate process; the robot ends stopped,
   the log is readable, result.json says why, the exit code says failure.
 * Ctrl-C (SIGINT) and SIGTERM mid-mission; the bridge process killed mid-mission.
+
+The default suite runs the two full missions, a fall, SIGTERM and the bridge killed; the other
+outcomes (object lost, landmarks lost, object not found, SIGINT, the station killed) are marked
+slow (``make test-slow``) to keep the project suite under 10 minutes.
 """
 
 from __future__ import annotations
@@ -270,11 +274,14 @@ def finish(tmp_path: Path, proc: subprocess.Popen, outcome: str, timeout: float 
     return result
 
 
+SLOW = pytest.mark.slow  # the default suite keeps one test per exit path; these cover the other outcomes
+
+
 @pytest.mark.parametrize("event, outcome, mission", [
     ("fall", "fallen", {}),
-    ("hide_object", "object_lost", {"object_lost_timeout": 1.5}),
-    ("hide_landmarks", "landmarks_lost", {"landmarks_lost_timeout": 2.0}),
-    ("SIGINT", "interrupted", {}),
+    pytest.param("hide_object", "object_lost", {"object_lost_timeout": 1.5}, marks=SLOW),
+    pytest.param("hide_landmarks", "landmarks_lost", {"landmarks_lost_timeout": 2.0}, marks=SLOW),
+    pytest.param("SIGINT", "interrupted", {}, marks=SLOW),
     ("SIGTERM", "interrupted", {}),
 ])
 def test_failure_mid_mission_stops_robot_and_says_why(sim_bridge, tmp_path, event, outcome, mission):
@@ -299,6 +306,7 @@ def test_failure_mid_mission_stops_robot_and_says_why(sim_bridge, tmp_path, even
         assert result["reason"] == f"interrupted by {event}"
 
 
+@SLOW
 def test_object_never_seen_is_object_not_found(sim_bridge, tmp_path):
     bridge, port = sim_bridge
     bridge.hide(objects=True)
@@ -326,6 +334,7 @@ def test_bridge_killed_mid_mission_is_bridge_lost(tmp_path):
     assert "liveliness" in result["reason"]
 
 
+@SLOW
 def test_station_killed_takes_its_sim_bridge_down(tmp_path):
     proc = station("start", "--robot", "sim", "--out", str(tmp_path / "run"), stderr=tmp_path / "err")
     try:
