@@ -5,7 +5,9 @@ with the camera aimed at it: the object and two to six ArUco boards in view, som
 disc. Rendering is done first; then per frame the station's work is timed: ``RobotLocalizer.on_frame``
 (ArUco + colour landmarks, PnP, planar refinement, fusion), ``extract_silhouette`` and
 ``measure_object``. Wall time per step, mean process CPU time per frame (all OpenCV threads counted).
-The machine is shared by several engineers: the figures are noisy.
+The machine is shared by several engineers: the figures are noisy, so the frames are processed in
+``PASSES`` passes and the table gives the lowest per-pass median (timeit's practice: other
+processes only ever add time) next to the median over all passes.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from nao_bridge.sim import SimWorld
 from nao_bridge.sim.world import head_angles_towards
 
 FRAMES = 80
+PASSES = 3
 
 
 class _Clock:
@@ -59,6 +62,17 @@ def _measure(resolution: str) -> dict:
     landmarks = load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml")
     frames, camera = _frames(resolution)
     localizer = RobotLocalizer(params, landmarks, camera, perception)
+    passes = [_pass(frames, camera, perception, localizer) for _ in range(PASSES)]
+    return {
+        "best": {k: min(np.median(p["times"][k]) for p in passes) for k in passes[0]["times"]},
+        "all": {k: np.concatenate([p["times"][k] for p in passes]) for k in passes[0]["times"]},
+        "cpu": min(p["cpu"] for p in passes),
+        "fixes": passes[0]["fixes"],
+        "measured": passes[0]["measured"],
+    }
+
+
+def _pass(frames, camera: CameraModel, perception: PerceptionParams, localizer: RobotLocalizer) -> dict:
     times = {"total": [], "localization": [], "silhouette": [], "measurement": []}
     fixes = measured = 0
     cpu_start = 0.0
@@ -88,16 +102,16 @@ def run() -> str:
     rows = []
     for resolution in ("qvga", "vga"):
         r = _measure(resolution)
-        t = r["times"]
+        best, every = r["best"], r["all"]
         rows.append(
-            f"| {resolution} | {np.median(t['total']):.2f} | {np.percentile(t['total'], 95):.2f} | {r['cpu']:.2f} | "
-            f"{np.median(t['localization']):.2f} | {np.median(t['silhouette']):.2f} | {np.median(t['measurement']):.2f} | "
+            f"| {resolution} | {best['total']:.2f} | {np.median(every['total']):.2f} | {np.percentile(every['total'], 95):.2f} | "
+            f"{r['cpu']:.2f} | {best['localization']:.2f} | {best['silhouette']:.2f} | {best['measurement']:.2f} | "
             f"{r['fixes']}/{FRAMES} | {r['measured']}/{FRAMES} |"
         )
     table = "\n".join([
-        "| resolution | total median (ms) | total p95 (ms) | CPU mean (ms) | localization (ms) | silhouette (ms) | "
-        "measurement (ms) | landmark fixes | object measured |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        f"| resolution | total median, best of {PASSES} passes (ms) | total median, all passes (ms) | total p95 (ms) | "
+        "CPU mean, best pass (ms) | localization (ms) | silhouette (ms) | measurement (ms) | landmark fixes | object measured |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *rows,
     ])
     return (
@@ -105,7 +119,8 @@ def run() -> str:
         f"Per frame over {FRAMES} simulator frames on a 0.6-1.2 m orbit around the can, camera aimed at it: "
         "`RobotLocalizer.on_frame` (ArUco + colour landmarks, PnP, planar refinement, fusion) + `extract_silhouette` "
         "+ `measure_object`, medians of wall time, and the mean process CPU time (all OpenCV threads). Target: total median "
-        "<= 3 ms at VGA. Shared 2-core machine (load 3 to 7): noisy.\n\n"
+        f"<= 3 ms at VGA. Shared 2-core machine (load 3 to 7): noisy, so {PASSES} passes over the frames; the step columns "
+        "are best-pass medians.\n\n"
         "Command: `.venv/bin/python -m tools.bench --only perception`\n\n"
         f"{table}\n"
     )
