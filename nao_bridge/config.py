@@ -38,15 +38,28 @@ def bounds(lo: Optional[float] = None, hi: Optional[float] = None) -> dict:
     return {"bounds": (lo, hi)}
 
 
+class _NoAliasLoader(yaml.SafeLoader):
+    """SafeLoader that refuses anchors/aliases: a hand-written config never needs them, and alias
+    expansion lets a tiny file grow exponentially ("billion laughs")."""
+
+    def compose_node(self, parent, index):  # type: ignore[no-untyped-def]
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "aliases are not allowed in configuration files",
+                                              self.peek_event().start_mark)
+        return super().compose_node(parent, index)
+
+
 def _read_yaml(path: Path) -> dict:
     try:
         text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_NoAliasLoader)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nesting too deep") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -190,11 +203,13 @@ def load(cls: type[T], files: Iterable[Union[str, Path]], section: Optional[str]
     for path in paths:
         _merge(merged, origin, _read_yaml(path), str(path))
     conv = _Converter(origin, str(paths[-1]) if paths else "<config>")
-    if section is None:
-        return conv.dataclass(cls, merged, ())
-    if section not in merged:
+    if section is not None and section not in merged:
         raise ConfigError(f"{paths[-1] if paths else '<config>'}: {section}: missing required section")
-    return conv.dataclass(cls, merged[section], (section,))
+    data, prefix = (merged, ()) if section is None else (merged[section], (section,))
+    try:
+        return conv.dataclass(cls, data, prefix)
+    except RecursionError:
+        raise ConfigError(f"{conv.default_source}: nesting too deep") from None
 
 
 def from_mapping(cls: type[T], data: Mapping, source: str = "<mapping>") -> T:
