@@ -152,7 +152,8 @@ def test_plan_terms_add_up_and_the_command_is_within_limits():
 
 def test_plan_turns_away_rather_than_break_the_clearance():
     planner = make_planner()
-    x, P = np.array([0.6, 0.0, 0.1]), np.diag([0.005, 0.005, 0.005]) ** 2  # clearance boundary 0.25 m ahead
+    r = 0.1
+    x, P = np.array([r + PARAMS.clearance + 0.25, 0.0, r]), np.diag([0.005, 0.005, 0.005]) ** 2  # boundary 0.25 m ahead
     plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
     path = rollout_poses(np.zeros(3), plan.omegas, PARAMS.speed, PARAMS.period)
     assert np.min(np.hypot(*(x[:2] - path[:, :2]).T)) >= x[2] + PARAMS.clearance
