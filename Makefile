@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: venv test test-slow demo bench fuzz clean
+.PHONY: venv test test-slow demo demo-estimation bench fuzz clean
 
 venv: $(STAMP)
 
@@ -20,12 +20,23 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
 
+# A full mission on the simulated NAO: log, model, result.json and report figures in runs/demo/.
 demo: $(STAMP)
-	$(PY) -m tools.demo_estimation --out runs/demo
+	$(VENV)/bin/station start --robot sim --out runs/demo
 
+# The estimation-only demo (a camera circling a cylinder, the EKF and its 3-sigma ellipses).
+demo-estimation: $(STAMP)
+	$(PY) -m tools.demo_estimation --out runs/demo-estimation
+
+# Open3D (the carving baseline) is installed in the bench environment only; its wheel needs libusb.
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[station,test,bench]"
+	@$(PY) -c "import open3d" 2>/dev/null || { command -v apt-get >/dev/null && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || true
 	$(PY) -m tools.bench --out docs/benchmarks.md
+
+# Long fuzzing budget (the default suite runs a bounded one).
+fuzz: $(STAMP)
+	$(PY) -m pytest -q -m slow tests/test_fuzz.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .hypothesis
