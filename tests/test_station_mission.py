@@ -52,15 +52,9 @@ def station(*args: str, stderr: Optional[Path] = None) -> subprocess.Popen:
     return subprocess.Popen([PY, "-m", "station.cli", *args], stdout=subprocess.PIPE, stderr=err)
 
 
-# config/planner.yaml's clearance (0.25 m from the surface) lets the robot come within ~0.4 m of the
-# can, where at large head yaw (pitch limit ~0.25 rad) the whole object drops below the image and the
-# mission ends with object_lost. 0.45 m keeps it in view (reported to the planner's owner).
-PLANNER_CLEARANCE = "planner:\n  clearance: 0.45\n"
-
-
 def write_override(path: Path, port: int, **mission: float) -> Path:
     lines = ["station:", f"  port: {port}", "mission:"] + [f"  {k}: {v}" for k, v in mission.items()]
-    path.write_text("\n".join(lines if mission else lines[:-1]) + "\n" + PLANNER_CLEARANCE)
+    path.write_text("\n".join(lines if mission else lines[:-1]) + "\n")
     return path
 
 
@@ -207,9 +201,7 @@ def test_standin_mission_through_qi_completes(tmp_path):
                                 "--listen", f"tcp://127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         time.sleep(2.0)  # libqi listening
-        (tmp_path / "planner.yaml").write_text(PLANNER_CLEARANCE)
-        proc = station("start", "--naoqi", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "run"),
-                       "--config", str(tmp_path / "planner.yaml"), stderr=tmp_path / "err")
+        proc = station("start", "--naoqi", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "run"), stderr=tmp_path / "err")
         proc.wait(MISSION_TIMEOUT)
     finally:
         standin.send_signal(signal.SIGINT)
