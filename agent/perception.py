@@ -8,17 +8,33 @@ Segmentation (per colour class, OpenCV HSV: H in [0, 180), S, V in [0, 255])::
 The object is one 8-connected component of M (found by its outer contour) with area >= min_area:
 the largest, or the one whose centroid is nearest a predicted pixel. Its mask (0/255) is what the carver intersects.
 
-Measurement (DESIGN.md section 2). For every image row v of the silhouette, the outer edge of its
-leftmost and rightmost pixels, (u_min(v) - 1/2, v) and (u_max(v) + 1/2, v) (a pixel's centre is at
-integer u, so its outer edge is half a pixel further out), is back-projected (distortion removed),
-rotated into W with T_WC and reduced to a horizontal azimuth a(v). For a vertical cylinder the
-left/right outline rows lie in the two vertical tangent planes, so
+Sub-pixel outline (per row v, left side; the right side is its mirror). The binary mask's first
+pixel u0 is only within a pixel of the edge: an anti-aliased or blurred edge has mixed pixels, and
+whether they pass the colour threshold depends on the threshold, not on the geometry. The edge is
+located where the pixel colours cross from the background's to the object's. With the reference
+colours B = I(u0 - w, v) (background) and O = I(u0 + w, v) (object), w = ``edge_window``, each
+pixel between them is unmixed linearly into its object coverage
+
+    c_i = clip( (I_i - B) . (O - B) / |O - B|^2, 0, 1 ),   i = u0 - w + 1 .. u0 + w - 1,
+
+and since pixel i spans [i - 1/2, i + 1/2], the coverages sum to the object's length in the window:
+
+    e_left(v) = u0 + w - 1/2 - sum_i c_i.
+
+This is exact for area-sampled (anti-aliased) edges and, for a symmetric blur, puts the edge at
+the half-way crossing; it needs no threshold tuning. Rows with too little contrast
+(|O - B| < ``edge_min_contrast``), too short a run or a reference outside the image keep the
+mask's outer pixel edge u0 - 1/2.
+
+Measurement (DESIGN.md section 2). Every row's left and right outline edge (u, v) is
+back-projected (distortion removed), rotated into W with T_WC and reduced to a horizontal azimuth
+a(v). For a vertical cylinder the left/right outline rows lie in the two vertical tangent planes, so
 
     a_l = mean{ a_left(v)  : a_left(v)  >= max_v a_left  - band },
     a_r = mean{ a_right(v) : a_right(v) <= min_v a_right + band },   band = edge_band / f_x,
 
-averages out the +-1/2 pixel quantization along the slanted outline (the extreme row alone is
-biased outwards by about half a pixel a side: it is the row whose quantization went furthest out), and
+averages the rows' noise (and, on the binary fallback, the +-1/2 pixel quantization along a slanted
+outline, where the extreme row alone is biased outwards by about half a pixel a side), and
 delta = a_l - a_r, azimuth_W = (a_l + a_r) / 2, phi = wrap(azimuth_W - psi(T_WC)).
 A silhouette within ``border_margin`` of the left or right border is cut by the image: it gives
 a bearing (that of the visible part) and no width, never a wrong one.
@@ -65,6 +81,8 @@ class PerceptionParams:
     component: Literal["largest", "nearest"]  # "nearest" needs a predicted pixel, else largest
     border_margin: int = field(metadata=bounds(0, 100))  # px from the left/right border that cut the width
     edge_band: float = field(metadata=bounds(0.0, 10.0))  # tangent-row band, in pixels' angles
+    edge_window: int = field(metadata=bounds(0, 10))  # px: sub-pixel edge references this far out/in (0 = mask edge)
+    edge_min_contrast: float = field(metadata=bounds(0.0, 442.0))  # BGR distance object-background for a sub-pixel edge
     aim_height: float = field(metadata=bounds(0.0, 2.0))  # m, head servo aims at this height on the object
     servo_gain: float = field(metadata=bounds(0.0, 1.0))  # weight of the measured centroid in the head target
     search_pitch: float = field(metadata=bounds(-1.0, 1.0))  # rad, head pitch when there is no estimate yet
@@ -88,6 +106,8 @@ class Silhouette:
     touches_right: bool
     touches_top: bool  # informative only: a cut top or bottom does not bias a cylinder's width
     touches_bottom: bool
+    left_edge: np.ndarray  # N x 2 sub-pixel outline (u, v): each row's left edge
+    right_edge: np.ndarray  # N x 2, each row's right edge
 
     @property
     def width_valid(self) -> bool:
@@ -223,6 +243,10 @@ def extract_silhouette(
     mask[y:y + h, x:x + w][component] = 255
     rows, cols = np.nonzero(component)
     left_rows, right_rows = rows[cols == 0], rows[cols == w - 1]
+    band_rows = np.flatnonzero(component.any(axis=1))
+    first = component[band_rows].argmax(axis=1)
+    last = w - 1 - component[band_rows, ::-1].argmax(axis=1)
+    left_edge, right_edge = outline_edges(image, y + band_rows, x + first, x + last, params)
     height, width = image.shape[:2]
     m = params.border_margin
     return Silhouette(
@@ -236,18 +260,43 @@ def extract_silhouette(
         touches_right=x + w - 1 >= width - 1 - m,
         touches_top=y <= m,
         touches_bottom=y + h - 1 >= height - 1 - m,
+        left_edge=left_edge,
+        right_edge=right_edge,
     )
 
 
-def outline_edges(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Per row of a mask, the outer edges (u, v) of its leftmost and rightmost pixels (N x 2 each)."""
-    on = mask > 0
-    rows = np.flatnonzero(on.any(axis=1))
-    band = on[rows]
-    first = band.argmax(axis=1)
-    last = band.shape[1] - 1 - band[:, ::-1].argmax(axis=1)
+def outline_edges(
+    image: np.ndarray, rows: np.ndarray, first: np.ndarray, last: np.ndarray, params: PerceptionParams
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel left and right outline edges (N x 2, (u, v)) of mask rows ``rows`` whose first and
+    last object pixels are ``first`` and ``last`` (module docstring: linear unmixing between the
+    background and object colours ``edge_window`` pixels out and in)."""
     v = rows.astype(float)
-    return np.column_stack([first - 0.5, v]), np.column_stack([last + 0.5, v])
+    return (
+        np.column_stack([_edge(image, rows, first, last, -1, params), v]),
+        np.column_stack([_edge(image, rows, last, first, +1, params), v]),
+    )
+
+
+def _edge(image: np.ndarray, rows: np.ndarray, edge_px: np.ndarray, far_px: np.ndarray, outwards: int,
+          params: PerceptionParams) -> np.ndarray:
+    """Edge coordinate per row on one side; ``outwards`` = -1 (left: background at smaller u) or +1 (right)."""
+    binary = edge_px + 0.5 * outwards
+    w = params.edge_window
+    if w == 0:
+        return binary
+    offsets = np.arange(-w, w + 1) * -outwards  # from the background reference (index 0) to the object's (2w)
+    cols = edge_px[:, None] + offsets[None, :]
+    usable = (cols.min(axis=1) >= 0) & (cols.max(axis=1) < image.shape[1]) & (np.abs(far_px - edge_px) >= w)
+    pixels = image[rows[:, None], np.clip(cols, 0, image.shape[1] - 1)].astype(np.float32)  # N x (2w+1) x 3
+    background, obj = pixels[:, 0], pixels[:, -1]
+    axis = obj - background
+    contrast2 = np.einsum("nc,nc->n", axis, axis)
+    usable &= contrast2 >= params.edge_min_contrast**2
+    coverage = np.einsum("nkc,nc->nk", pixels[:, 1:-1] - background[:, None], axis) / np.maximum(contrast2, 1e-6)[:, None]
+    # The object's length inside the window, measured from the object reference's inner pixel edge.
+    subpixel = edge_px - outwards * (w - 0.5) + outwards * np.clip(coverage, 0.0, 1.0).sum(axis=1)
+    return np.where(usable, subpixel, binary)
 
 
 def measure_object(
@@ -257,9 +306,9 @@ def measure_object(
 
     None when the silhouette has no outline pixels; ``delta`` is None when it is cut by a side border.
     """
-    if silhouette.area <= 0:
+    if silhouette.area <= 0 or len(silhouette.left_edge) == 0:
         return None
-    left, right = outline_edges(silhouette.mask)
+    left, right = silhouette.left_edge, silhouette.right_edge
     a_left = ray_azimuths(camera.pixels_to_rays(left), T_WC)
     a_right = ray_azimuths(camera.pixels_to_rays(right), T_WC)
     # Unwrap around the left tangent so that the comparisons below never straddle +-pi.
