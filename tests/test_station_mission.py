@@ -205,7 +205,10 @@ def test_standin_mission_through_qi_completes(tmp_path):
         proc.wait(MISSION_TIMEOUT)
     finally:
         standin.send_signal(signal.SIGINT)
-        standin.wait(10)
+        try:
+            standin.wait(10)
+        except subprocess.TimeoutExpired:
+            standin.kill()
     result = json.loads((tmp_path / "run" / "result.json").read_text())
     assert proc.returncode == 0, (tmp_path / "err").read_text()[-2000:]
     assert result["outcome"] == "completed" and result["coverage"] >= 0.90
