@@ -53,6 +53,7 @@ from agent.camera import CameraModel, optical_axis_heading, ray_azimuths, wrap_a
 from nao_bridge.config import bounds
 
 MIN_IMAGE_SIDE = 16  # px: anything smaller is not a camera frame
+COARSE_WIDTH = 160  # px: the object's colour is first looked for on the frame reduced to this width
 
 
 class ImageError(ValueError):
@@ -203,9 +204,26 @@ def blobs(mask: np.ndarray, min_area: int) -> Tuple[list, np.ndarray, np.ndarray
     return kept, np.asarray(areas, dtype=float), np.asarray(centroids, dtype=float).reshape(-1, 2)
 
 
-def color_blobs(hsv: np.ndarray, color: ColorClass, params: PerceptionParams, min_area: int):
-    """``blobs`` of the cleaned mask of one colour class in an HSV image."""
-    return blobs(clean_mask(color_mask(hsv, color), params), min_area)
+def color_region(image_bgr: np.ndarray, color: ColorClass, margin: int) -> Optional[Tuple[int, int, int, int]]:
+    """Bounds (x0, y0, x1, y1) of the part of a frame that holds a colour class's pixels, or None.
+
+    The colour is looked for on every f-th pixel of every f-th row, f the integer factor that
+    brings the frame to at most ``COARSE_WIDTH`` wide (sampling: a fifth of the cost of block
+    means); the box of the hits, mapped back and padded by f + ``margin`` px, is where the
+    full-resolution mask is computed. A blob with no f x f square of the colour (thinner than
+    f px), or thin parts reaching more than f px beyond its thick ones, can be missed or cut;
+    everything else is found exactly as on the whole frame.
+    """
+    height, width = image_bgr.shape[:2]
+    f = max(1, -(-width // COARSE_WIDTH))
+    if f == 1:
+        return 0, 0, width, height
+    samples = cv2.resize(image_bgr, (-(-width // f), -(-height // f)), interpolation=cv2.INTER_NEAREST)  # = image[::f, ::f]
+    x, y, w, h = cv2.boundingRect(color_mask(cv2.cvtColor(samples, cv2.COLOR_BGR2HSV), color))
+    if w == 0:
+        return None
+    pad = f + margin
+    return max(x * f - pad, 0), max(y * f - pad, 0), min((x + w - 1) * f + 1 + pad, width), min((y + h - 1) * f + 1 + pad, height)
 
 
 def extract_silhouette(
@@ -225,12 +243,17 @@ def extract_silhouette(
     name = params.object_color if color is None else color
     if name not in params.colors:
         raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
-    cleaned = clean_mask(color_mask(cv2.cvtColor(image, cv2.COLOR_BGR2HSV), params.colors[name]), params)
+    colour = params.colors[name]
+    region = color_region(image, colour, 2 * max(params.open_radius, params.close_radius) + 1)
+    if region is None:
+        return None
+    x0, y0, x1, y1 = region
+    cleaned = clean_mask(color_mask(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2HSV), colour), params)
     contours, areas, centroids = blobs(cleaned, params.min_area)
     if not contours:
         return None
     if params.component == "nearest" and predicted_uv is not None:
-        best = int(np.argmin(np.hypot(*(centroids - np.asarray(predicted_uv, dtype=float)).T)))
+        best = int(np.argmin(np.hypot(*(centroids + (x0, y0) - np.asarray(predicted_uv, dtype=float)).T)))
     else:
         best = int(np.argmax(areas))
     x, y, w, h = cv2.boundingRect(contours[best])
@@ -239,7 +262,8 @@ def extract_silhouette(
     _, labels = cv2.connectedComponents(cleaned[y:y + h, x:x + w], connectivity=8)
     u0, v0 = contours[best][0, 0]
     component = labels == labels[v0 - y, u0 - x]
-    mask = np.zeros_like(cleaned)
+    x, y = x + x0, y + y0
+    mask = np.zeros(image.shape[:2], np.uint8)
     mask[y:y + h, x:x + w][component] = 255
     rows, cols = np.nonzero(component)
     left_rows, right_rows = rows[cols == 0], rows[cols == w - 1]
@@ -271,32 +295,26 @@ def outline_edges(
     """Sub-pixel left and right outline edges (N x 2, (u, v)) of mask rows ``rows`` whose first and
     last object pixels are ``first`` and ``last`` (module docstring: linear unmixing between the
     background and object colours ``edge_window`` pixels out and in)."""
-    v = rows.astype(float)
-    return (
-        np.column_stack([_edge(image, rows, first, last, -1, params), v]),
-        np.column_stack([_edge(image, rows, last, first, +1, params), v]),
-    )
-
-
-def _edge(image: np.ndarray, rows: np.ndarray, edge_px: np.ndarray, far_px: np.ndarray, outwards: int,
-          params: PerceptionParams) -> np.ndarray:
-    """Edge coordinate per row on one side; ``outwards`` = -1 (left: background at smaller u) or +1 (right)."""
-    binary = edge_px + 0.5 * outwards
+    n = len(rows)
+    # Both sides at once: the left edges (background towards -u) then the right ones (towards +u).
+    outwards = np.repeat([-1, 1], n)
+    edge_px, far_px = np.concatenate([first, last]), np.concatenate([last, first])
+    u = edge_px + 0.5 * outwards  # the mask's outer pixel edges
     w = params.edge_window
-    if w == 0:
-        return binary
-    offsets = np.arange(-w, w + 1) * -outwards  # from the background reference (index 0) to the object's (2w)
-    cols = edge_px[:, None] + offsets[None, :]
-    usable = (cols.min(axis=1) >= 0) & (cols.max(axis=1) < image.shape[1]) & (np.abs(far_px - edge_px) >= w)
-    pixels = image[rows[:, None], np.clip(cols, 0, image.shape[1] - 1)].astype(np.float32)  # N x (2w+1) x 3
-    background, obj = pixels[:, 0], pixels[:, -1]
-    axis = obj - background
-    contrast2 = np.einsum("nc,nc->n", axis, axis)
-    usable &= contrast2 >= params.edge_min_contrast**2
-    coverage = np.einsum("nkc,nc->nk", pixels[:, 1:-1] - background[:, None], axis) / np.maximum(contrast2, 1e-6)[:, None]
-    # The object's length inside the window, measured from the object reference's inner pixel edge.
-    subpixel = edge_px - outwards * (w - 0.5) + outwards * np.clip(coverage, 0.0, 1.0).sum(axis=1)
-    return np.where(usable, subpixel, binary)
+    if w > 0:
+        cols = edge_px[:, None] - outwards[:, None] * np.arange(-w, w + 1)  # background reference first, object's last
+        usable = (cols.min(axis=1) >= 0) & (cols.max(axis=1) < image.shape[1]) & (np.abs(far_px - edge_px) >= w)
+        pixels = image[np.tile(rows, 2)[:, None], np.clip(cols, 0, image.shape[1] - 1)].astype(np.float32)
+        background = pixels[:, 0]
+        axis = pixels[:, -1] - background
+        contrast2 = np.einsum("nc,nc->n", axis, axis)
+        usable &= contrast2 >= params.edge_min_contrast**2
+        coverage = np.einsum("nkc,nc->nk", pixels[:, 1:-1] - background[:, None], axis) / np.maximum(contrast2, 1.0)[:, None]
+        # The object's length in the window, measured outwards from the object reference's inner pixel edge.
+        subpixel = edge_px - outwards * (w - 0.5) + outwards * np.clip(coverage, 0.0, 1.0).sum(axis=1)
+        u = np.where(usable, subpixel, u)
+    v = np.tile(rows, 2).astype(float)
+    return np.column_stack([u[:n], v[:n]]), np.column_stack([u[n:], v[n:]])
 
 
 def measure_object(

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from agent import perception
 from agent.camera import CameraModel, optical_axis_heading, planar_transform, wrap_angle
 from agent.perception import (
     ColorClass,
@@ -159,6 +160,29 @@ def test_sim_render_bearing_and_width_match_truth(params, robot, resolution):
         assert abs(m.phi - phi) < math.radians(0.1)
         errors.append(m.delta - delta - fattening)
     assert np.abs(errors).max() < 0.3 / camera.K[0, 0]
+
+
+def test_coarse_colour_region_gives_the_full_frame_silhouette(params, robot, monkeypatch):
+    """The mask is computed only where the frame reduced to 160 px shows the colour: on simulator
+    frames (object near, far, cut by the border, absent) the result equals the whole frame's."""
+    world = SimWorld("can", robot, "vga", seed=1)
+    centre = np.array(world.scenario.position)
+    results = []
+    for distance, azimuth, head_yaw in [(0.6, 0.3, 0.0), (2.5, 2.0, 0.1), (1.0, -1.5, 0.45), (1.0, 1.0, -0.45), (1.0, 0.0, 2.0)]:
+        pose = (centre[0] + distance * math.cos(azimuth), centre[1] + distance * math.sin(azimuth), azimuth + math.pi)
+        yaw, pitch = head_angles_towards(robot, pose, (*centre, 0.1))
+        world.teleport(pose, (yaw + head_yaw, pitch))
+        results.append([world.render().image])
+    for image in results:
+        image.append(extract_silhouette(image[0], params))
+    monkeypatch.setattr(perception, "COARSE_WIDTH", 10**6)
+    for image, coarse in results:
+        whole = extract_silhouette(image, params)
+        assert (coarse is None) == (whole is None)
+        if whole is not None:
+            assert np.array_equal(coarse.mask, whole.mask) and coarse.bbox == whole.bbox
+            assert np.array_equal(coarse.left_edge, whole.left_edge) and np.array_equal(coarse.right_edge, whole.right_edge)
+    assert sum(r[1] is None for r in results) == 1 and sum(not r[1].width_valid for r in results if r[1]) == 2
 
 
 def test_cut_by_a_side_border_gives_a_bearing_and_no_width(params, robot):
