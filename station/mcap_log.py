@@ -145,7 +145,8 @@ class LogMessage:
 def read_log(path: Union[str, Path], topics: Optional[set] = None) -> Iterator[LogMessage]:
     """Messages of the log in file order (all topics, or those in ``topics``).
 
-    A log without a valid summary (cut by a crash) is read linearly with a warning.
+    A log without a valid summary (cut by a crash, or damaged) is read linearly with a warning,
+    up to the last complete record. Damage inside an indexed log raises :class:`LogError`.
     """
     with open(path, "rb") as stream:
         try:
@@ -153,34 +154,38 @@ def read_log(path: Union[str, Path], topics: Optional[set] = None) -> Iterator[L
             summary = reader.get_summary()
             if summary is None:
                 raise McapError("no summary")
-        except (McapError, ValueError, EOFError, AssertionError) as exc:
-            warnings.warn(f"{path}: incomplete MCAP ({exc}); reading it linearly up to the last complete record")
+        except Exception as exc:  # noqa: BLE001 - any damage to the summary: fall back to the linear read
+            warnings.warn(f"{path}: incomplete MCAP ({exc!r}); reading it linearly up to the last complete record")
             stream.seek(0)
             yield from _linear(stream, topics)
             return
-        for schema, channel, message in reader.iter_messages(topics=list(topics) if topics else None, log_time_order=False):
-            yield _message(schema, channel, message)
+        try:
+            for schema, channel, message in reader.iter_messages(topics=list(topics) if topics else None,
+                                                                 log_time_order=False):
+                yield _message(schema, channel, message)
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk behind a valid summary
+            raise LogError(f"{path}: damaged MCAP data: {exc!r}") from None
 
 
 def _linear(stream, topics: Optional[set]) -> Iterator[LogMessage]:
     schemas: Dict[int, Schema] = {}
     channels: Dict[int, Channel] = {}
-    records = StreamReader(stream, skip_magic=False).records
-    while True:
-        try:
+    try:
+        records = StreamReader(stream, skip_magic=False).records
+        while True:
             record = next(records)
-        except StopIteration:
-            return
-        except Exception:  # noqa: BLE001 - the truncated tail may fail anywhere in the record parser
-            return
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel):
-            channels[record.id] = record
-        elif isinstance(record, Message):
-            channel = channels[record.channel_id]
-            if topics is None or channel.topic in topics:
-                yield _message(schemas.get(channel.schema_id), channel, record)
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                if topics is None or channel.topic in topics:
+                    yield _message(schemas.get(channel.schema_id), channel, record)
+    except StopIteration:
+        return
+    except Exception:  # noqa: BLE001 - the truncated or damaged tail may fail anywhere in the record parser
+        return
 
 
 def _message(schema: Optional[Schema], channel: Channel, message: Message) -> LogMessage:

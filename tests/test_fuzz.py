@@ -295,11 +295,7 @@ def run(target: str, examples: int, derandomize: bool) -> None:
     run_given(strategy, check, examples, derandomize)
 
 
-LOG_CUT_BUG = pytest.mark.xfail(strict=True, reason="station.mcap_log.read_log: about 1.6 % of cut points make "
-                                                    "get_summary raise struct.error or OSError (reported)")
-
-
-@pytest.mark.parametrize("target", [pytest.param(t, marks=LOG_CUT_BUG) if t == "log-cut" else t for t in sorted(TARGETS)])
+@pytest.mark.parametrize("target", sorted(TARGETS))
 def test_fuzz(target):
     run(target, CI_EXAMPLES, derandomize=True)
 
@@ -310,8 +306,6 @@ def test_fuzz_long(target):
     run(target, LONG_EXAMPLES, derandomize=False)
 
 
-@pytest.mark.xfail(strict=True, reason="station.mcap_log.read_log: a corrupted log, or one cut within its "
-                                       "first 50 bytes, raises KeyError, MemoryError, OSError, struct.error... (reported)")
 def test_fuzz_corrupt_log():
     run("log-corrupt", CI_EXAMPLES, derandomize=True)
 
