@@ -4,7 +4,10 @@ Landmark points (image u_i <-> world X_i):
 
 * ArUco markers (``cv2.aruco.ArucoDetector`` on an image reduced to at most ``aruco_detection_width``,
   corners refined on the full image by ``cv2.cornerSubPix``): the four corners of each marker of
-  the map, in ``Landmark.aruco_corners()`` order.
+  the map, in ``Landmark.aruco_corners()`` order. With a pose prior, only boxes around the markers'
+  predicted projections are searched (each marker's box padded by its projected side plus
+  ``aruco_track_margin`` px; overlapping boxes merged); the whole frame is searched when there is
+  no prior or the boxes gave fewer than ``min_points`` corners (a wrong prior costs one full search).
 * Colour markers: centroids of the blobs of each colour class (found at half resolution). Colours repeat, so a blob is
   associated with the landmark of its colour whose projection from the pose prior is nearest,
   within ``color_gate`` pixels, and only when no other landmark of that colour is within the gate
@@ -77,6 +80,7 @@ class LocalizationParams:
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
     aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
     aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
+    aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
 
 
 @dataclass(frozen=True)
@@ -137,36 +141,59 @@ class LandmarkDetector:
                     raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class")
                 self.colors.setdefault(str(lm.color), []).append(lm)
 
-    def aruco_points(self, gray: np.ndarray) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
+    def aruco_points(
+        self, gray: np.ndarray, boxes: Optional[List[Tuple[int, int, int, int]]] = None
+    ) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
         """Map markers found in a grey image: ids, world corners (4 x 3 each), image corners (4 x 2 each).
 
         Detection runs on the image reduced by an integer factor f to at most
-        ``aruco_detection_width`` wide; the corners, mapped back by (c + 1/2) f - 1/2, are refined
-        on the full image with ``cv2.cornerSubPix``.
+        ``aruco_detection_width`` wide, in the ``boxes`` (x0, y0, x1, y1; full-size pixels) if given,
+        else everywhere; the corners, mapped back by (c + 1/2) f - 1/2, are refined on the full
+        image with ``cv2.cornerSubPix``.
         """
         factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
         small = gray
         if factor > 1:
             small = cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
-        ids_out: List[object] = []
-        world: List[np.ndarray] = []
-        image: List[np.ndarray] = []
+        regions = [(0, 0, small.shape[1], small.shape[0])] if boxes is None else [
+            (x0 // factor, y0 // factor, -(-x1 // factor), -(-y1 // factor)) for x0, y0, x1, y1 in boxes
+        ]
+        found: Dict[Tuple[str, int], np.ndarray] = {}
         for name, detector in self.detectors.items():
-            corners, ids, _ = detector.detectMarkers(small)
-            if ids is None:
-                continue
             known = self.aruco[name]
-            for c, marker_id in zip(corners, ids.ravel()):
-                if int(marker_id) in known:
-                    ids_out.append(int(marker_id))
-                    world.append(known[int(marker_id)])
-                    image.append(c.reshape(4, 2))
+            for x0, y0, x1, y1 in regions:
+                corners, ids, _ = detector.detectMarkers(small[y0:y1, x0:x1])
+                for c, marker_id in zip(corners, () if ids is None else ids.ravel()):
+                    if int(marker_id) in known:
+                        found[(name, int(marker_id))] = c.reshape(4, 2) + (x0, y0)
+        ids_out: List[object] = [marker_id for _, marker_id in found]
+        world: List[np.ndarray] = [self.aruco[name][marker_id] for name, marker_id in found]
+        image: List[np.ndarray] = list(found.values())
         if factor > 1 and image:
             points = ((np.vstack(image) + 0.5) * factor - 0.5).astype(np.float32)
             window = (factor + 1, factor + 1)  # half-size: a (2f + 3)-pixel square around each corner
             points = cv2.cornerSubPix(gray, points.reshape(-1, 1, 2), window, (-1, -1), _SUBPIX_CRITERIA).reshape(-1, 2)
             image = list(points.reshape(-1, 4, 2))
         return ids_out, world, image
+
+    def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Tuple[int, int, int, int]]:
+        """Pixel boxes (x0, y0, x1, y1) around the map markers whose four corners project into the
+        image from T_WC, each padded by its projected side plus ``aruco_track_margin``; overlapping
+        boxes are merged."""
+        corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
+        if len(corners) == 0:
+            return []
+        uv, in_front = camera.project_world(corners, T_WC)
+        uv, in_front = uv.reshape(-1, 4, 2), in_front.reshape(-1, 4).all(axis=1)
+        boxes = []
+        for quad in uv[in_front]:
+            lo, hi = quad.min(axis=0), quad.max(axis=0)
+            if lo[0] < 0 or lo[1] < 0 or hi[0] > camera.width - 1 or hi[1] > camera.height - 1:
+                continue  # cut by the border: not detectable
+            pad = 0.5 * float(np.max(hi - lo)) + self.params.aruco_track_margin
+            boxes.append([max(int(lo[0] - pad), 0), max(int(lo[1] - pad), 0),
+                          min(int(hi[0] + pad) + 1, camera.width), min(int(hi[1] + pad) + 1, camera.height)])
+        return _merge_boxes(boxes)
 
     def color_points(
         self, image_bgr: np.ndarray, camera: CameraModel, T_WC_prior: Optional[np.ndarray]
@@ -287,7 +314,11 @@ class RobotLocalizer:
         """The pose fix of one frame on its own (no jump gate, no fusion), or None."""
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         T_WC_prior = None if prior is None else planar_transform(*prior) @ T_BC
-        ids, world, pixels = self.detector.aruco_points(gray)
+        ids, world, pixels = [], [], []
+        if T_WC_prior is not None:
+            ids, world, pixels = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC_prior))
+        if 4 * len(ids) < self.params.min_points:  # no prior, or it predicted the markers wrong: search everywhere
+            ids, world, pixels = self.detector.aruco_points(gray)
         if 4 * len(ids) < self.params.color_below_aruco_points:  # discs add little to enough sub-pixel corners
             c_ids, c_world, c_pixels = self.detector.color_points(image, self.camera, T_WC_prior)
             ids, world, pixels = ids + c_ids, world + c_world, pixels + c_pixels
@@ -355,15 +386,15 @@ class RobotLocalizer:
             X_C = X_B @ R_CB.T + t_CB
             z = X_C[:, 2:3]
             r = (f * X_C[:, :2] / z + principal - target).ravel()
-            dB = np.stack([np.broadcast_to([-c, s, 0.0], X_B.shape), np.broadcast_to([-s, -c, 0.0], X_B.shape),
-                           np.column_stack([X_B[:, 1], -X_B[:, 0], np.zeros(len(X_B))])], axis=2)  # N x 3 x 3
-            dC = np.einsum("ij,njk->nik", R_CB, dB)  # N x 3 (xyz) x 3 (params)
+            dC_dxy = R_CB @ np.array([[-c, -s], [s, -c], [0.0, 0.0]])  # 3 x 2, the same for every point
+            dC_dtheta = np.outer(X_B[:, 1], R_CB[:, 0]) - np.outer(X_B[:, 0], R_CB[:, 1])  # N x 3
+            dC = np.concatenate([np.broadcast_to(dC_dxy, (len(X_B), 3, 2)), dC_dtheta[:, :, None]], axis=2)  # N x xyz x params
             # d(f a / z) = f (da z - a dz) / z^2 for a = x, y
             J = f[None, :, None] * (dC[:, :2, :] * z[:, :, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, :, None] ** 2
             J = J.reshape(-1, 3)
             dp = np.linalg.solve(J.T @ J, -J.T @ r)
             p += dp
-            if np.abs(dp).max() < 1e-10:
+            if np.abs(dp).max() < 1e-8:  # m, rad: Gauss-Newton from the PnP seed gets there in 2-3 steps
                 break
         rms = float(np.sqrt(np.mean(r**2) * 2.0))
         return (float(p[0]), float(p[1]), wrap_angle(float(p[2]))), rms, J
@@ -393,6 +424,21 @@ class RobotLocalizer:
         self.covariance = 0.5 * (P + P.T)
         fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
+
+
+def _merge_boxes(boxes: List[List[int]]) -> List[Tuple[int, int, int, int]]:
+    """Boxes (x0, y0, x1, y1) with every overlapping pair replaced by their union, until none overlap."""
+    merged: List[List[int]] = []
+    for box in boxes:
+        while True:
+            overlapping = [m for m in merged if box[0] < m[2] and m[0] < box[2] and box[1] < m[3] and m[1] < box[3]]
+            if not overlapping:
+                break
+            for m in overlapping:
+                merged.remove(m)
+                box = [min(box[0], m[0]), min(box[1], m[1]), max(box[2], m[2]), max(box[3], m[3])]
+        merged.append(box)
+    return [tuple(b) for b in merged]  # type: ignore[misc]
 
 
 def _check_pose(pose: object, name: str) -> Pose:
