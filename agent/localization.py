@@ -177,9 +177,9 @@ class LandmarkDetector:
         return ids_out, world, image
 
     def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Tuple[int, int, int, int]]:
-        """Pixel boxes (x0, y0, x1, y1) around the map markers whose four corners project into the
-        image from T_WC, each padded by its projected side plus ``aruco_track_margin``; overlapping
-        boxes are merged."""
+        """Pixel boxes (x0, y0, x1, y1), clipped to the image, around the projections from T_WC of the
+        map markers in front of the camera and facing it, each padded by half its projected side plus
+        ``aruco_track_margin``; overlapping boxes are merged."""
         corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
         if len(corners) == 0:
             return []
@@ -187,10 +187,14 @@ class LandmarkDetector:
         uv, in_front = uv.reshape(-1, 4, 2), in_front.reshape(-1, 4).all(axis=1)
         boxes = []
         for quad in uv[in_front]:
+            x, y = quad.T
+            if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) <= 0:
+                continue  # seen from behind (mirrored corner order) or edge-on: not detectable
             lo, hi = quad.min(axis=0), quad.max(axis=0)
-            if lo[0] < 0 or lo[1] < 0 or hi[0] > camera.width - 1 or hi[1] > camera.height - 1:
-                continue  # cut by the border: not detectable
-            pad = 0.5 * float(np.max(hi - lo)) + self.params.aruco_track_margin
+            margin = self.params.aruco_track_margin
+            if np.any(hi < -margin) or np.any(lo > np.array([camera.width, camera.height]) - 1 + margin):
+                continue  # predicted outside the image by more than the margin
+            pad = 0.5 * float(np.max(hi - lo)) + margin
             boxes.append([max(int(lo[0] - pad), 0), max(int(lo[1] - pad), 0),
                           min(int(hi[0] + pad) + 1, camera.width), min(int(hi[1] + pad) + 1, camera.height)])
         return _merge_boxes(boxes)

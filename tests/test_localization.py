@@ -244,3 +244,27 @@ def test_fix_covariance_is_not_overconfident(params, perception, robot, room):
         e = np.array([fix.pose[0] - truth[0], fix.pose[1] - truth[1], wrap_angle(fix.pose[2] - truth[2])])
         nees.append(e @ np.linalg.solve(fix.covariance, e))
     assert np.max(nees) < 11.34 and np.mean(nees) < 3.0
+
+
+def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perception, robot, room):
+    """VGA orbit views: with a prior 3 cm / 1.5 deg off, the boxes around the predicted markers
+    (a fraction of the frame) give the same markers and pose as searching the whole frame; with a
+    prior 1 m and 90 deg off, the boxes find too few corners and the whole frame is searched."""
+    world = SimWorld("can", robot, "vga", seed=2)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, room, camera, perception)
+    ox, oy = world.scenario.position
+    for azimuth in (0.3, 2.2, -1.9):
+        truth = (ox + 0.9 * math.cos(azimuth), oy + 0.9 * math.sin(azimuth), azimuth + math.pi)
+        world.teleport(truth, head_angles_towards(robot, truth, (ox, oy, 0.1)))
+        frame = world.render()
+        near = (truth[0] + 0.03, truth[1] - 0.02, truth[2] + math.radians(1.5))
+        boxes = localizer.detector.predicted_boxes(camera, planar_transform(*near) @ frame.T_BC)
+        assert 0 < sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes) < 0.5 * camera.width * camera.height
+        full = localizer.measure(frame.image, frame.T_BC)
+        for prior in (near, (truth[0] + 1.0, truth[1], truth[2] + math.pi / 2)):
+            fix = localizer.measure(frame.image, frame.T_BC, prior)
+            assert sorted(fix.landmark_ids) == sorted(full.landmark_ids)
+            assert fix.pose == pytest.approx(full.pose, abs=1e-6)
+            distance, angle = pose_error(fix.pose, truth)
+            assert distance < 0.01 and angle < math.radians(0.5)
