@@ -126,6 +126,7 @@ class LandmarkDetector:
         self.aruco: Dict[str, Dict[int, np.ndarray]] = {}
         for lm in landmark_map.of_kind("aruco"):
             self.aruco.setdefault(str(lm.dictionary), {})[int(lm.id)] = lm.aruco_corners()
+        self.aruco_corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
         (detector_params.adaptiveThreshWinSizeMin, detector_params.adaptiveThreshWinSizeMax,
@@ -180,23 +181,22 @@ class LandmarkDetector:
         """Pixel boxes (x0, y0, x1, y1), clipped to the image, around the projections from T_WC of the
         map markers in front of the camera and facing it, each padded by half its projected side plus
         ``aruco_track_margin``; overlapping boxes are merged."""
-        corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
-        if len(corners) == 0:
+        if len(self.aruco_corners) == 0:
             return []
-        uv, in_front = camera.project_world(corners, T_WC)
-        uv, in_front = uv.reshape(-1, 4, 2), in_front.reshape(-1, 4).all(axis=1)
-        boxes = []
-        for quad in uv[in_front]:
-            x, y = quad.T
-            if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) <= 0:
-                continue  # seen from behind (mirrored corner order) or edge-on: not detectable
-            lo, hi = quad.min(axis=0), quad.max(axis=0)
-            margin = self.params.aruco_track_margin
-            if np.any(hi < -margin) or np.any(lo > np.array([camera.width, camera.height]) - 1 + margin):
-                continue  # predicted outside the image by more than the margin
-            pad = 0.5 * float(np.max(hi - lo)) + margin
-            boxes.append([max(int(lo[0] - pad), 0), max(int(lo[1] - pad), 0),
-                          min(int(hi[0] + pad) + 1, camera.width), min(int(hi[1] + pad) + 1, camera.height)])
+        uv, in_front = camera.project_world(self.aruco_corners, T_WC)
+        quads = uv.reshape(-1, 4, 2)[in_front.reshape(-1, 4).all(axis=1)]
+        x, y = quads[..., 0], quads[..., 1]
+        # Shoelace area (image y down): positive for a marker seen from the front in cv2.aruco's
+        # corner order; a marker seen from behind is mirrored, one edge-on has none.
+        facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
+        lo, hi = quads.min(axis=1), quads.max(axis=1)
+        margin = self.params.aruco_track_margin
+        size = np.array([camera.width, camera.height])
+        near = np.all(hi >= -margin, axis=1) & np.all(lo <= size - 1 + margin, axis=1)  # in the image, or nearly
+        pad = (0.5 * (hi - lo).max(axis=1) + margin)[:, None]
+        lo = np.clip(np.floor(lo - pad), 0, size).astype(int)
+        hi = np.clip(np.floor(hi + pad) + 1, 0, size).astype(int)
+        boxes = [[*l, *h] for l, h in zip(lo[facing & near], hi[facing & near])]
         return _merge_boxes(boxes)
 
     def color_points(
