@@ -24,6 +24,7 @@ from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
 from nao_bridge.robot_model import load_robot_model
 from nao_bridge.sim import SimWorld
 from nao_bridge.sim.world import head_angles_towards
+from tools.benchmarks.bench_perception_width import renderer_fattening_px
 
 TEMPLE = Path("/work/shared/data/middlebury/templeSparseRing")
 RED_BGR = (35, 35, 200)
@@ -129,24 +130,13 @@ def test_antialiased_and_blurred_edges_give_an_unbiased_width(params, robot, res
     assert binary_px.mean() > 0.3  # what the mask's edges would have given
 
 
-def renderer_fattening_px() -> float:
-    """How far the simulator's anti-aliased polygon fill (``cv2.fillConvexPoly`` with ``LINE_AA``,
-    nao_bridge/sim/render.py) reaches beyond each true edge, from its drawn area (about 0.69 px)."""
-    image = np.zeros((60, 80), np.uint8)
-    x0, x1 = 20.3, 50.6
-    polygon = np.array([[x0, 5.0], [x1, 5.0], [x1 + 6.0, 55.0], [x0 + 6.0, 55.0]])
-    cv2.fillConvexPoly(image, np.round(polygon * 256).astype(np.int32), 255, lineType=cv2.LINE_AA, shift=8)
-    drawn = image[10:50].sum(axis=1) / 255.0
-    return float(np.mean(drawn - (x1 - x0)) / 2.0)
-
-
 @pytest.mark.parametrize("resolution", ["qvga", "vga"])
 def test_sim_render_bearing_and_width_match_truth(params, robot, resolution):
     """Simulator frames: bearing within 0.1 deg; the width matches the silhouette the renderer drew
     (its anti-aliased fill is 0.69 px too wide a side): measured within 0.2 px of it over 45 views."""
     world = SimWorld("can", robot, resolution, seed=3)
     camera = camera_of(robot, resolution)
-    fattening = 2.0 * renderer_fattening_px() / camera.K[0, 0]
+    fattening = 2.0 * renderer_fattening_px(polygons=20) / camera.K[0, 0]
     assert fattening * camera.K[0, 0] == pytest.approx(1.39, abs=0.05)
     centre, radius = np.array(world.scenario.position), world.scenario.radius
     errors = []
