@@ -5,6 +5,8 @@ Segmentation (per colour class, OpenCV HSV: H in [0, 180), S, V in [0, 255])::
     M = [h_lo <= H <= h_hi] & [S in s] & [V in v]          (h_lo > h_hi wraps: H >= h_lo or H <= h_hi)
     M <- close(open(M, disc(r_open)), disc(r_close))         (drop speckle, fill pinholes)
 
+M is computed only in the box where every f-th pixel of every f-th row (the frame at 160 px) is
+of the colour, padded by f and the morphology's reach (``color_region``).
 The object is one 8-connected component of M (found by its outer contour) with area >= min_area:
 the largest, or the one whose centroid is nearest a predicted pixel. Its mask (0/255) is what the carver intersects.
 
@@ -243,12 +245,12 @@ def extract_silhouette(
     name = params.object_color if color is None else color
     if name not in params.colors:
         raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
-    colour = params.colors[name]
-    region = color_region(image, colour, 2 * max(params.open_radius, params.close_radius) + 1)
+    color_class = params.colors[name]
+    region = color_region(image, color_class, 2 * max(params.open_radius, params.close_radius) + 1)
     if region is None:
         return None
     x0, y0, x1, y1 = region
-    cleaned = clean_mask(color_mask(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2HSV), colour), params)
+    cleaned = clean_mask(color_mask(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2HSV), color_class), params)
     contours, areas, centroids = blobs(cleaned, params.min_area)
     if not contours:
         return None

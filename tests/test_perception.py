@@ -157,22 +157,22 @@ def test_coarse_colour_region_gives_the_full_frame_silhouette(params, robot, mon
     frames (object near, far, cut by the border, absent) the result equals the whole frame's."""
     world = SimWorld("can", robot, "vga", seed=1)
     centre = np.array(world.scenario.position)
-    results = []
+    images = []
     for distance, azimuth, head_yaw in [(0.6, 0.3, 0.0), (2.5, 2.0, 0.1), (1.0, -1.5, 0.45), (1.0, 1.0, -0.45), (1.0, 0.0, 2.0)]:
         pose = (centre[0] + distance * math.cos(azimuth), centre[1] + distance * math.sin(azimuth), azimuth + math.pi)
         yaw, pitch = head_angles_towards(robot, pose, (*centre, 0.1))
         world.teleport(pose, (yaw + head_yaw, pitch))
-        results.append([world.render().image])
-    for image in results:
-        image.append(extract_silhouette(image[0], params))
-    monkeypatch.setattr(perception, "COARSE_WIDTH", 10**6)
-    for image, coarse in results:
+        images.append(world.render().image)
+    coarse = [extract_silhouette(image, params) for image in images]
+    monkeypatch.setattr(perception, "COARSE_WIDTH", 10**6)  # f = 1: the whole frame
+    for image, found in zip(images, coarse):
         whole = extract_silhouette(image, params)
-        assert (coarse is None) == (whole is None)
+        assert (found is None) == (whole is None)
         if whole is not None:
-            assert np.array_equal(coarse.mask, whole.mask) and coarse.bbox == whole.bbox
-            assert np.array_equal(coarse.left_edge, whole.left_edge) and np.array_equal(coarse.right_edge, whole.right_edge)
-    assert sum(r[1] is None for r in results) == 1 and sum(not r[1].width_valid for r in results if r[1]) == 2
+            assert np.array_equal(found.mask, whole.mask) and found.bbox == whole.bbox
+            assert np.array_equal(found.left_edge, whole.left_edge) and np.array_equal(found.right_edge, whole.right_edge)
+    # near, far, cut by the right and by the left border, absent:
+    assert sum(s is None for s in coarse) == 1 and sum(not s.width_valid for s in coarse if s is not None) == 2
 
 
 def test_cut_by_a_side_border_gives_a_bearing_and_no_width(params, robot):
