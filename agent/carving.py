@@ -80,6 +80,8 @@ class CarvingParams:
     tolerance: int = field(default=0, metadata=bounds(0, 200))
     octree_levels: int = field(default=5, metadata=bounds(0, 10))
     max_voxels: int = field(default=1 << 26, metadata=bounds(1, 1 << 31))
+    dilation: int = field(default=0, metadata=bounds(0, 50))
+    floor_prior: bool = False
 
 
 def load_carving_params(overrides: Sequence[Union[str, Path]] = ()) -> CarvingParams:
@@ -124,6 +126,12 @@ def volume_bounds(
         top = min(top, _height_bound(silhouette, camera, np.asarray(T_WC, dtype=float), (x, y), rho))
     top = max(top, params.pitch)
     return np.array([x - rho, y - rho, 0.0]), np.array([x + rho, y + rho, top])
+
+
+def estimate_footprint(bounds_min: np.ndarray, bounds_max: np.ndarray) -> Tuple[float, float, float]:
+    """(x, y, rho): the disk inscribed in the square footprint of :func:`volume_bounds`."""
+    centre = 0.5 * (bounds_min + bounds_max)
+    return float(centre[0]), float(centre[1]), 0.5 * float(bounds_max[0] - bounds_min[0])
 
 
 def _height_bound(silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray, xy: Tuple[float, float], rho: float) -> float:
@@ -177,6 +185,36 @@ def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
     return cv2.dilate(ideal, np.ones((3, 3), np.uint8))
 
 
+def _dilated(silhouette: np.ndarray, radius: int) -> np.ndarray:
+    """The silhouette grown by a disk of ``radius`` pixels (absorbs pose and edge errors)."""
+    if radius <= 0:
+        return silhouette
+    return cv2.dilate(silhouette, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1)))
+
+
+def _floor_extension(silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> np.ndarray:
+    """Rows below the image (see the module docstring, floor prior): the bottom row's silhouette
+    runs shrunk toward the vanishing point of the downward vertical, plus one pixel of slack.
+
+    Empty (no rows) when vertical lines do not converge below the image (camera not looking down).
+    """
+    height, width = silhouette.shape
+    down = np.asarray(camera.K, dtype=float) @ (T_WC[:3, :3].T @ np.array([0.0, 0.0, -1.0]))
+    if down[2] <= 1e-9 or down[1] / down[2] <= height - 1:
+        return np.zeros((0, width), dtype=np.uint8)
+    u_vp, v_vp = down[0] / down[2], down[1] / down[2]
+    rows = min(height, int(v_vp - (height - 1)))
+    scale = (v_vp - (height - 1 + np.arange(1, rows + 1))) / (v_vp - (height - 1))  # 1 at the border, 0 at the VP
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], silhouette[-1].astype(np.int8), [0]])))
+    columns = np.arange(width)
+    extension = np.zeros((rows, width), dtype=bool)
+    for first, last in zip(edges[0::2], edges[1::2] - 1):  # runs [first, last] of the bottom row
+        lo = u_vp + (first - 0.5 - u_vp) * scale
+        hi = u_vp + (last + 0.5 - u_vp) * scale
+        extension |= (columns >= np.ceil(lo - 0.5)[:, None] - 1) & (columns <= np.floor(hi + 0.5)[:, None] + 1)
+    return extension.astype(np.uint8)
+
+
 class VoxelCarver:
     """A voxel volume carved by silhouettes, one view at a time (see the module docstring).
 
@@ -190,6 +228,7 @@ class VoxelCarver:
         bounds_max: Sequence[float],
         pitch: Optional[float] = None,
         params: CarvingParams = CarvingParams(),
+        footprint: Optional[Tuple[float, float, float]] = None,
     ):
         lo, hi = np.asarray(bounds_min, dtype=float), np.asarray(bounds_max, dtype=float)
         if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
@@ -215,17 +254,23 @@ class VoxelCarver:
         # Per voxel: how many views said "empty", saturated at k + 1 (dead). The padding is dead.
         self._counts = np.full(padded, params.tolerance + 1, dtype=np.uint8)
         self._counts[: shape[0], : shape[1], : shape[2]] = 0
+        if footprint is not None:  # voxels wholly outside the vertical cylinder over the disk are dead
+            fx, fy, radius = footprint
+            gx = np.abs(self.origin[0] + self.pitch * np.arange(shape[0]) - fx)[:, None]
+            gy = np.abs(self.origin[1] + self.pitch * np.arange(shape[1]) - fy)[None, :]
+            nearest = np.hypot(np.maximum(gx - 0.5 * self.pitch, 0.0), np.maximum(gy - 0.5 * self.pitch, 0.0))
+            self._counts[: shape[0], : shape[1], : shape[2]][nearest > radius] = params.tolerance + 1
         # Octree levels l = 0..L: cells per axis, and for l >= 1 a flat "holds a living voxel" flag
         # per cell, level l stored from _offsets[l].
         self._dims = np.array([[n >> level for n in padded] for level in range(self._levels + 1)], dtype=np.int64)
         sizes = [int(np.prod(d)) if level else 0 for level, d in enumerate(self._dims)]
         self._offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         self._alive = np.zeros(self._offsets[-1] + sizes[-1], dtype=bool)
-        for level in range(1, self._levels + 1):  # at first a cell lives iff it overlaps the real grid
-            live = -(-np.array(shape) // (1 << level))
-            self._alive[self._offsets[level] : self._offsets[level] + sizes[level]].reshape(self._dims[level])[
-                : live[0], : live[1], : live[2]
-            ] = True
+        living = self._counts <= params.tolerance
+        for level in range(1, self._levels + 1):  # at first a cell lives iff it holds a living voxel
+            d = self._dims[level]
+            living = living.reshape(d[0], 2, d[1], 2, d[2], 2).any(axis=(1, 3, 5))
+            self._alive[self._offsets[level] : self._offsets[level] + sizes[level]] = living.ravel()
 
     @classmethod
     def from_estimate(
@@ -236,8 +281,9 @@ class VoxelCarver:
         covariance: Optional[np.ndarray] = None,
         views: Iterable[View] = (),
     ) -> "VoxelCarver":
-        """A carver whose volume surrounds the object estimate (:func:`volume_bounds`)."""
-        return cls(*volume_bounds(centre_xy, radius, params, covariance, views), params=params)
+        """A carver whose volume is the vertical cylinder about the object estimate (:func:`volume_bounds`)."""
+        lo, hi = volume_bounds(centre_xy, radius, params, covariance, views)
+        return cls(lo, hi, params=params, footprint=estimate_footprint(lo, hi))
 
     @property
     def occupancy(self) -> np.ndarray:
@@ -247,10 +293,12 @@ class VoxelCarver:
 
     def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> int:
         """Carve with one silhouette; returns the number of voxels it removed."""
-        silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC))
+        silhouette = _dilated(_pinhole_mask(*_checked_view(mask, camera, T_WC)), self.params.dilation)
+        if self.params.floor_prior:
+            silhouette = np.vstack([silhouette, _floor_extension(silhouette, camera, np.asarray(T_WC, dtype=float))])
         x, y, w, h = cv2.boundingRect(silhouette)  # the summed-area table covers the silhouette's box only
         table = cv2.integral(silhouette[y : y + h, x : x + w], sdepth=cv2.CV_32S)
-        image = np.array([camera.width, camera.height, x, y], dtype=np.int64)
+        image = np.array([camera.width, silhouette.shape[0], x, y], dtype=np.int64)
         P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
         removed = _carve_view(
             self._counts, self._alive, self._offsets, self._dims, P, self.corner, self.pitch, table, image, self.params.tolerance
@@ -298,9 +346,10 @@ def carve(
     bounds_max: Sequence[float],
     pitch: Optional[float] = None,
     params: CarvingParams = CarvingParams(),
+    footprint: Optional[Tuple[float, float, float]] = None,
 ) -> VoxelCarver:
     """Offline carving of all ``views`` (same grid as adding them one by one, in any order)."""
-    carver = VoxelCarver(bounds_min, bounds_max, pitch, params)
+    carver = VoxelCarver(bounds_min, bounds_max, pitch, params, footprint)
     for mask, camera, T_WC in views:
         carver.add_view(mask, camera, T_WC)
     return carver

@@ -21,7 +21,7 @@ from typing import Callable, List, Optional, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, volume_bounds
+from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, estimate_footprint, volume_bounds
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
 
@@ -39,7 +39,7 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
     ``max_voxels`` (a box metres wide would take minutes and carve nothing useful).
     """
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
-    return carve(views, lo, hi, pitch, params)
+    return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi))
 
 
 class CarvingWorker:

@@ -6,6 +6,11 @@ received states): smoother than the landmark-corrected poses, whose jitter would
 Against simulator truth (when the log has it)::
 
     centre_error = |(x, y) - (x_true, y_true)|,   radius_error = r - r_true
+
+and the model against the true shape voxelized on the model's grid (a voxel is true iff its centre
+lies in one of the object's parts, a vertical cylinder or a box turned about z)::
+
+    IoU = |M & T| / |M | T|,   containment = |M & T| / |T|,   extent errors = extent(M) - extent(T)
 """
 
 from __future__ import annotations
@@ -14,12 +19,13 @@ import dataclasses
 import json
 import math
 from pathlib import Path
-from typing import Any, Dict, Optional, Union
+from typing import Any, Dict, Optional, Tuple, Union
 
 import numpy as np
 
 from agent.mission import Outcome
-from nao_bridge.protocol import State, Truth, decode
+from agent.carving import VoxelCarver
+from nao_bridge.protocol import State, Truth, TruthObject, decode
 from station.carving_worker import position_std
 from station.mcap_log import read_log
 from station.topics import COVERAGE, KEYFRAME, STATE, TRUTH
@@ -57,6 +63,49 @@ def log_figures(log_path: Union[str, Path]) -> Dict[str, Any]:
     return {"path_length": path_length, "coverage": coverage, "keyframes": keyframes, "truth": truth}
 
 
+def truth_occupancy(obj: TruthObject, origin: np.ndarray, pitch: float, shape: Tuple[int, int, int]) -> np.ndarray:
+    """Bool grid: voxels (centre origin + pitch (i, j, k)) whose centre lies inside the true object."""
+    x, y, z = (origin[a] + pitch * np.arange(n) for a, n in enumerate(shape))
+    c, s = math.cos(obj.yaw), math.sin(obj.yaw)
+    dx, dy = (x - obj.centre[0])[:, None], (y - obj.centre[1])[None, :]
+    ox, oy = c * dx + s * dy, -s * dx + c * dy  # object frame
+    occupancy = np.zeros(shape, dtype=bool)
+    for part in obj.parts:
+        px, py = ox - part.centre[0], oy - part.centre[1]
+        if part.shape == "cylinder":
+            inside_xy = np.hypot(px, py) <= 0.5 * part.size[0]
+        else:
+            cp, sp = math.cos(part.yaw), math.sin(part.yaw)
+            inside_xy = (np.abs(cp * px + sp * py) <= 0.5 * part.size[0]) & (np.abs(-sp * px + cp * py) <= 0.5 * part.size[1])
+        inside_z = np.abs(z - part.centre[2]) <= 0.5 * part.size[2]
+        occupancy |= inside_xy[:, :, None] & inside_z[None, None, :]
+    return occupancy
+
+
+def _extents(occupancy: np.ndarray, pitch: float) -> np.ndarray:
+    """Extents (m) of the occupied voxels along x, y, z."""
+    spans = []
+    for axis in range(3):
+        filled = np.flatnonzero(occupancy.any(axis=tuple(a for a in range(3) if a != axis)))
+        spans.append(pitch * (filled[-1] - filled[0] + 1) if filled.size else 0.0)
+    return np.array(spans)
+
+
+def model_accuracy(carver: VoxelCarver, obj: TruthObject) -> Dict[str, float]:
+    """The carved model against the true object on the same grid (module docstring)."""
+    # The grid grown to hold the whole object too, so parts outside the carving volume count as lost.
+    pad_lo = np.maximum(np.ceil((carver.corner - np.array([obj.centre[0] - obj.radius, obj.centre[1] - obj.radius, 0.0])) / carver.pitch), 0).astype(int)
+    far = np.array([obj.centre[0] + obj.radius, obj.centre[1] + obj.radius, obj.height])
+    pad_hi = np.maximum(np.ceil((far - carver.corner) / carver.pitch) - np.array(carver.shape), 0).astype(int)
+    model = np.pad(carver.occupancy, list(zip(pad_lo, pad_hi)))
+    true = truth_occupancy(obj, carver.origin - carver.pitch * pad_lo, carver.pitch, model.shape)
+    both, either, n_true = (int(np.count_nonzero(g)) for g in (model & true, model | true, true))
+    errors = _extents(model, carver.pitch) - _extents(true, carver.pitch)
+    return {"iou": both / either if either else 0.0, "containment": both / n_true if n_true else 0.0,
+            "true_volume": n_true * carver.pitch**3, "volume_error": float(np.count_nonzero(model) - n_true) * carver.pitch**3,
+            "width_error": float(errors[0]), "depth_error": float(errors[1]), "height_error": float(errors[2])}
+
+
 def build_result(summary, log_path: Path, files: Dict[str, Any], resolution: str) -> Dict[str, Any]:
     """The result.json document of a run (``summary``: station.run.RunSummary); the log may be missing."""
     figures = log_figures(log_path) if log_path.exists() else {"path_length": 0.0, "coverage": None, "keyframes": 0, "truth": None}
@@ -81,6 +130,8 @@ def build_result(summary, log_path: Path, files: Dict[str, Any], resolution: str
     if summary.carver is not None:
         model = {"metrics": dataclasses.asdict(summary.carver.metrics()), "pitch": summary.carver.pitch,
                  "views": summary.carver.views_added}
+        if truth is not None:
+            model["accuracy"] = model_accuracy(summary.carver, truth.object)
     return {
         "version": RESULT_VERSION,
         "status": status_of(summary.outcome),

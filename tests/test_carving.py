@@ -17,7 +17,7 @@ from skimage.measure import marching_cubes
 from agent.camera import CameraModel, invert
 from agent.carving import CarvingParams, VoxelCarver, carve, load_carving_params, load_npz, volume_bounds
 from agent.mesh import occupancy_to_mesh, save_mesh
-from tools.carving_scenes import Box, Cylinder, Sphere, Union, analytic_hull, render_mask, ring_poses
+from tools.carving_scenes import Box, Cylinder, Sphere, Union, analytic_hull, look_at, render_mask, ring_poses
 
 PITCH = 0.002
 CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))
@@ -220,8 +220,9 @@ def test_resolution_in_cells():
     assert carver.pitch == pytest.approx(0.005) and carver.shape == (88, 88, 88)
 
 
-def test_config_defaults_match_the_dataclass():
-    assert load_carving_params() == CarvingParams()
+def test_config_is_the_exact_carver_plus_the_documented_mission_settings():
+    mission = dataclasses.replace(CarvingParams(), tolerance=1, dilation=1, margin=0.09)
+    assert load_carving_params() == mission
     assert dataclasses.replace(CarvingParams(), tolerance=2).tolerance == 2
 
 
@@ -295,3 +296,62 @@ def test_temple_hull_lies_in_the_published_box_and_covers_every_silhouette():
         drawn = np.zeros_like(mask)
         cv2.fillPoly(drawn, list(np.round(uv[mesh.faces] * 16).astype(np.int32)), 1, shift=4)
         assert np.count_nonzero(drawn & mask) >= 0.97 * np.count_nonzero(mask)
+
+
+# A NAO's view of small floor objects: QVGA top camera 0.48 m up, 0.5 m away, pitched so high (the
+# head's pitch limit at large yaw) that the image's bottom row cuts the object above its base.
+NAO_CAMERA = CameraModel.from_fov(320, 240, math.radians(60.97))
+FLOOR_SHAPES = {
+    "can": Cylinder(0.0, 0.0, 0.055, 0.0, 0.20),
+    "remote": Box((-0.10, -0.035, 0.0), (0.10, 0.035, 0.06)),
+    "figure": Union((Cylinder(0.0, -0.02, 0.004, 0.0, 0.08), Cylinder(0.0, 0.02, 0.004, 0.0, 0.08),
+                     Box((-0.03, -0.045, 0.08), (0.03, 0.045, 0.18)), Box((-0.003, -0.125, 0.157), (0.003, 0.125, 0.163)))),
+}
+FLOOR_LO, FLOOR_HI = np.array([-0.16, -0.16, 0.0]), np.array([0.16, 0.16, 0.24])
+
+
+def cut_views(shape, count: int = 18):
+    views = []
+    for i in range(count):
+        a = 2.0 * math.pi * i / count
+        T = look_at((0.5 * math.cos(a), 0.5 * math.sin(a), 0.48), (0.0, 0.0, 0.40))
+        views.append((render_mask(shape, NAO_CAMERA, T, (FLOOR_LO, FLOOR_HI)), NAO_CAMERA, T))
+    return views
+
+
+@pytest.mark.parametrize("name", ["can", pytest.param("figure", marks=pytest.mark.xfail(
+    reason="open: the floor prior carves a true voxel of this scene (not yet explained)", strict=True))])
+def test_floor_prior_keeps_the_object_and_removes_the_unseen_skirt(name):
+    shape, views = FLOOR_SHAPES[name], cut_views(FLOOR_SHAPES[name])
+    assert all(mask[-1].any() for mask, _, _ in views), "the scene must cut the object at the image bottom"
+    plain = carve(views, FLOOR_LO, FLOOR_HI, 0.003)
+    prior = carve(views, FLOOR_LO, FLOOR_HI, 0.003, CarvingParams(floor_prior=True))
+    inside = shape.contains(voxel_centres(prior)).reshape(prior.shape)
+    assert np.all(prior.occupancy[inside]), "the floor prior carved a voxel of the true object"
+    assert np.all(plain.occupancy >= prior.occupancy), "the prior may only remove voxels"
+    excess_plain, excess_prior = (np.count_nonzero(c.occupancy & ~inside) for c in (plain, prior))
+    assert excess_prior < 0.5 * excess_plain, (excess_prior, excess_plain)
+
+
+def test_floor_prior_follows_the_vanishing_point_of_verticals():
+    # Off-centre object, camera rolled 5 degrees: straight-down extension would cut the pole's base.
+    pole = Cylinder(0.12, 0.0, 0.01, 0.0, 0.25)
+    views = []
+    for a in np.linspace(-0.6, 0.6, 5):
+        T = look_at((0.6 * math.cos(a), 0.6 * math.sin(a), 0.48), (0.0, 0.0, 0.30))
+        roll = cv2.Rodrigues(np.array([0.0, 0.0, math.radians(5.0)]))[0]
+        T[:3, :3] = T[:3, :3] @ roll
+        views.append((render_mask(pole, NAO_CAMERA, T, (FLOOR_LO, FLOOR_HI)), NAO_CAMERA, T))
+    carver = carve(views, FLOOR_LO, FLOOR_HI, 0.003, CarvingParams(floor_prior=True))
+    inside = pole.contains(voxel_centres(carver)).reshape(carver.shape)
+    assert inside.any() and np.all(carver.occupancy[inside])
+
+
+def test_footprint_kills_exactly_the_voxels_outside_the_disk(scenes):
+    views = scenes["cylinder"]
+    plain = carve(views, LO, HI, 0.004)
+    disk = carve(views, LO, HI, 0.004, footprint=(0.0, 0.0, 0.19))
+    x, y, _ = np.moveaxis(voxel_centres(plain).reshape(*plain.shape, 3), -1, 0)
+    nearest = np.hypot(np.maximum(np.abs(x) - 0.002, 0.0), np.maximum(np.abs(y) - 0.002, 0.0))
+    assert np.array_equal(disk.occupancy, plain.occupancy & (nearest <= 0.19))
+    assert np.all(disk.occupancy[SHAPES["cylinder"].contains(voxel_centres(disk)).reshape(disk.shape)])
