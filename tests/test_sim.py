@@ -74,7 +74,7 @@ def test_detected_aruco_corners_match_projection_of_true_camera_pose(resolution)
     np.testing.assert_allclose(frame.T_BC, ROBOT.camera_in_robot(frame.head_yaw, frame.head_pitch), atol=1e-12)
 
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
     corners, ids, _ = detector.detectMarkers(frame.image)
     assert ids is not None and len(ids) >= 2
