@@ -50,6 +50,12 @@ class CameraModel:
     height: int
 
     @classmethod
+    def from_intrinsics(cls, intrinsics) -> "CameraModel":
+        """From a robot model's ``CameraIntrinsics`` (anything with K, dist, width and height)."""
+        return cls(K=np.asarray(intrinsics.K, dtype=float), dist=np.asarray(intrinsics.dist, dtype=float),
+                   width=int(intrinsics.width), height=int(intrinsics.height))
+
+    @classmethod
     def from_fov(cls, width: int, height: int, hfov: float) -> "CameraModel":
         """An ideal pinhole with square pixels and the given horizontal field of view (rad)."""
         f = 0.5 * width / math.tan(0.5 * hfov)

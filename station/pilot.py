@@ -60,7 +60,7 @@ class Step:
 
 def camera_from_info(info: Info) -> CameraModel:
     intr = info.intrinsics
-    return CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+    return CameraModel.from_intrinsics(intr)
 
 
 class Pilot:

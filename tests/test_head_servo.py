@@ -13,7 +13,6 @@ from agent.camera import CameraModel, planar_transform
 from agent.head_servo import head_target
 from agent.perception import PerceptionParams
 from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.robot_model import load_robot_model
 
 
 @pytest.fixture(scope="module")
@@ -22,14 +21,9 @@ def params() -> PerceptionParams:
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot_model()
-
-
-@pytest.fixture(scope="module")
 def camera(robot) -> CameraModel:
     intr = robot.camera.intrinsics("vga")
-    return CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+    return CameraModel.from_intrinsics(intr)
 
 
 def aim_pixel(robot, camera, pose, obj, params, head):

@@ -14,7 +14,6 @@ from agent.localization import LocalizationParams, RobotLocalizer, compose, rela
 from agent.perception import ImageError, PerceptionParams
 from nao_bridge.config import CONFIG_DIR, load
 from nao_bridge.landmark_map import Landmark, LandmarkMap, load_landmark_map
-from nao_bridge.robot_model import load_robot_model
 from nao_bridge.sim import SimWorld
 from nao_bridge.sim.render import COLOURS_BGR
 from nao_bridge.sim.world import head_angles_towards
@@ -31,18 +30,13 @@ def perception() -> PerceptionParams:
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot_model()
-
-
-@pytest.fixture(scope="module")
 def room() -> LandmarkMap:
     return load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml")
 
 
 def camera_of(robot, resolution: str) -> CameraModel:
     intr = robot.camera.intrinsics(resolution)
-    return CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+    return CameraModel.from_intrinsics(intr)
 
 
 def pose_error(pose, truth):

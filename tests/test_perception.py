@@ -21,7 +21,6 @@ from agent.perception import (
     measure_object,
 )
 from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
-from nao_bridge.robot_model import load_robot_model
 from nao_bridge.sim import SimWorld
 from nao_bridge.sim.world import head_angles_towards
 from tools.benchmarks.bench_perception_width import renderer_fattening_px
@@ -37,14 +36,9 @@ def params() -> PerceptionParams:
     return load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
 
 
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot_model()
-
-
 def camera_of(robot, resolution: str) -> CameraModel:
     intr = robot.camera.intrinsics(resolution)
-    return CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+    return CameraModel.from_intrinsics(intr)
 
 
 def cylinder_coverage(camera: CameraModel, T_WC: np.ndarray, centre, radius: float, height: float) -> np.ndarray:

@@ -63,7 +63,7 @@ def _frames(resolution: str, tracking: bool):
         world.teleport(pose, head_angles_towards(robot, pose, (ox, oy, 0.1)))
         frames.append((world.render(), compose(drift, pose)))
     intr = robot.camera.intrinsics(resolution)
-    return frames, CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
+    return frames, CameraModel.from_intrinsics(intr)
 
 
 def _timed(fn):
