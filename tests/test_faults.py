@@ -325,11 +325,10 @@ def test_log_of_a_killed_writer_reads_up_to_its_last_flush(tmp_path):
     assert killed - stamps[-1] <= 1.0 + 0.2  # the flush interval, plus scheduling on a loaded machine
 
 
-# -- whole station process (skipped until the station's pipeline imports) ---------------------------
+# -- whole station process ---------------------------------------------------------------------------
 
 
 def start_station(tmp_path: Path, port: int) -> subprocess.Popen:
-    pytest.importorskip("station.pilot", reason="the station's pipeline has not landed")
     (tmp_path / "station.yaml").write_text(f"station:\n  port: {port}\n")
     return subprocess.Popen([PY, "-m", "station.cli", "start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"),
                              "--config", str(tmp_path / "station.yaml")],

@@ -6,6 +6,7 @@ import json
 import struct
 
 import cv2
+import jsonschema
 import numpy as np
 import pytest
 
@@ -75,14 +76,12 @@ def test_round_trip_is_exact_and_type_checked(message):
 
 @pytest.mark.parametrize("message", samples(), ids=lambda m: m.TYPE)
 def test_encoded_messages_validate_against_their_schema(message):
-    jsonschema = pytest.importorskip("jsonschema")
     schema = json_schema(type(message))
     jsonschema.Draft202012Validator.check_schema(schema)
     jsonschema.validate(json.loads(encode(message)), schema)
 
 
 def test_schema_and_decoder_agree_on_bounds_and_fields():
-    jsonschema = pytest.importorskip("jsonschema")
     schema = json_schema(WalkCommand)
     good = to_dict(WalkCommand(seq=1, vx=0.0, vy=0.0, omega=0.0, ttl=1.0))
     for bad in ({**good, "vx": 1.5}, {**good, "extra": 1}, {k: v for k, v in good.items() if k != "ttl"}, {**good, "v": 2}):
