@@ -66,10 +66,6 @@ class CameraModel:
     def hfov(self) -> float:
         return 2.0 * math.atan(0.5 * self.width / self.K[0, 0])
 
-    @property
-    def vfov(self) -> float:
-        return 2.0 * math.atan(0.5 * self.height / self.K[1, 1])
-
     def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit rays in the optical frame for pixel coordinates ``uv`` (N x 2), distortion removed."""
         pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
