@@ -15,6 +15,7 @@ Supported field types: bool, int, float, str, ``Literal[...]``, ``Optional[T]``,
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import sys
@@ -49,7 +50,9 @@ class _NoAliasLoader(yaml.SafeLoader):
         return super().compose_node(parent, index)
 
 
-def _read_yaml(path: Path) -> dict:
+def read_yaml(path: Path, what: str = "a mapping") -> dict:
+    """The top-level mapping of a YAML file (empty file: ``{}``); aliases refused; ConfigError names
+    the file. ``what`` names the expected top level in the error (e.g. "a mapping of sections")."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -63,7 +66,7 @@ def _read_yaml(path: Path) -> dict:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+        raise ConfigError(f"{path}: expected {what} at the top level, got {type(data).__name__}")
     return data
 
 
@@ -75,7 +78,7 @@ def _merge(base: dict, origin: dict, update: Mapping, source: str, prefix: Tuple
         if isinstance(value, Mapping) and isinstance(base.get(key), dict):
             _merge(base[key], origin, value, source, path)
         else:
-            base[key] = _deep_copy(value)
+            base[key] = copy.deepcopy(value)
             if isinstance(value, Mapping):
                 _record(origin, value, source, path)
 
@@ -85,14 +88,6 @@ def _record(origin: dict, value: Mapping, source: str, prefix: Tuple[str, ...]) 
         origin[prefix + (str(key),)] = source
         if isinstance(sub, Mapping):
             _record(origin, sub, source, prefix + (str(key),))
-
-
-def _deep_copy(value: Any) -> Any:
-    if isinstance(value, Mapping):
-        return {k: _deep_copy(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_deep_copy(v) for v in value]
-    return value
 
 
 class _Converter:
@@ -201,7 +196,7 @@ def load(cls: type[T], files: Iterable[Union[str, Path]], section: Optional[str]
     origin: dict = {}
     paths = [Path(f) for f in files]
     for path in paths:
-        _merge(merged, origin, _read_yaml(path), str(path))
+        _merge(merged, origin, read_yaml(path), str(path))
     conv = _Converter(origin, str(paths[-1]) if paths else "<config>")
     if section is not None and section not in merged:
         raise ConfigError(f"{paths[-1] if paths else '<config>'}: {section}: missing required section")
