@@ -18,15 +18,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Sequence, Union
 
-import yaml
-
 from agent.carving import CarvingParams
 from agent.ekf import EKFParams
 from agent.localization import LocalizationParams
 from agent.mission import MissionParams
 from agent.perception import PerceptionParams
 from agent.planner import PlannerParams
-from nao_bridge.config import CONFIG_DIR, ConfigError, bounds, load
+from nao_bridge.config import CONFIG_DIR, ConfigError, bounds, load, read_yaml
 from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
 
 
@@ -94,15 +92,4 @@ def load_station_config(overrides: Sequence[Union[str, Path]] = ()) -> StationCo
 
 
 def _top_level(path: Path) -> Dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections at the top level")
-    return data
-
+    return read_yaml(path, what="a mapping of sections")
