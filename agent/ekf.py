@@ -164,6 +164,11 @@ class FilterStats:
         return dataclasses.asdict(self)
 
 
+def position_std(P: np.ndarray) -> float:
+    """Largest standard deviation of the estimated centre (xo, yo): sqrt of the largest eigenvalue of P[:2, :2], m."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(P)[:2, :2])[-1]), 0.0))
+
+
 def _geometry(x: np.ndarray, cams: np.ndarray) -> Tuple[np.ndarray, ...]:
     """(dx, dy, d^2, r, psi) of states and cameras, broadcast against each other."""
     x = np.asarray(x, dtype=float)

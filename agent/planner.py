@@ -54,7 +54,7 @@ from scipy.optimize import minimize
 
 from agent.camera import wrap_angle
 from agent.coverage import Coverage, CoverageParams, seen_count
-from agent.ekf import EKFParams, rollout_covariance
+from agent.ekf import EKFParams, position_std, rollout_covariance
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from nao_bridge.config import CONFIG_DIR, bounds, load
 from nao_bridge.robot_model import RobotModel, WalkLimits
@@ -209,11 +209,11 @@ def termination_reason(
     coverage_fraction: float, P: np.ndarray, elapsed: float, params: TerminationParams
 ) -> Optional[str]:
     """Why the mission is over ("complete: ...", "time_limit: ..."), or None to go on."""
-    position_std = math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0))
+    centre_std = position_std(P)
     radius_std = math.sqrt(max(P[2, 2], 0.0))
-    if coverage_fraction >= params.coverage and position_std <= params.position_std and radius_std <= params.radius_std:
+    if coverage_fraction >= params.coverage and centre_std <= params.position_std and radius_std <= params.radius_std:
         return (
-            f"complete: coverage {coverage_fraction:.2f}, position std {1000 * position_std:.1f} mm, "
+            f"complete: coverage {coverage_fraction:.2f}, position std {1000 * centre_std:.1f} mm, "
             f"radius std {1000 * radius_std:.1f} mm"
         )
     if elapsed >= params.time_limit:
