@@ -66,8 +66,9 @@ class CarvingWorker:
         self._thread.join(timeout)
         if x is None or not self.views:
             return None
-        if position_std(P) > self.max_position_std:
-            self.error = f"no final model: centre std {position_std(P):.3f} m > {self.max_position_std:g} m"
+        std = position_std(P)
+        if std > self.max_position_std:
+            self.error = f"no final model: centre std {std:.3f} m > {self.max_position_std:g} m"
             return None
         try:
             return carve_views(self.views, x, P, self.params)
