@@ -171,9 +171,7 @@ def _linear(stream, topics: Optional[set]) -> Iterator[LogMessage]:
     schemas: Dict[int, Schema] = {}
     channels: Dict[int, Channel] = {}
     try:
-        records = StreamReader(stream, skip_magic=False).records
-        while True:
-            record = next(records)
+        for record in StreamReader(stream, skip_magic=False).records:
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
@@ -182,8 +180,6 @@ def _linear(stream, topics: Optional[set]) -> Iterator[LogMessage]:
                 channel = channels[record.channel_id]
                 if topics is None or channel.topic in topics:
                     yield _message(schemas.get(channel.schema_id), channel, record)
-    except StopIteration:
-        return
     except Exception:  # noqa: BLE001 - the truncated or damaged tail may fail anywhere in the record parser
         return
 
