@@ -59,8 +59,7 @@ class Step:
 
 
 def camera_from_info(info: Info) -> CameraModel:
-    intr = info.intrinsics
-    return CameraModel.from_intrinsics(intr)
+    return CameraModel.from_intrinsics(info.intrinsics)
 
 
 class Pilot:

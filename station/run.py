@@ -42,7 +42,7 @@ from station.carving_worker import CarvingWorker
 from station.config import StationConfig
 from station.link import BridgeLink, Received
 from station.mcap_log import McapLog
-from station.pilot import Pilot, Step, camera_from_info
+from station.pilot import Pilot, Step
 from station.topics import (
     CALIBRATION, CARVING, CMD_HEAD, CMD_WALK, CONFIG, FRAME_IMAGE, FRAME_META, INFO, INPUT, REJECTED, SCENE_KEYFRAMES,
     SCENE_LANDMARKS, SCENE_MODEL, SCENE_OBJECT, STATE, TF, TRUTH, EKF, POSE,
@@ -93,7 +93,7 @@ class ControlLoop:
         self.clock = clock
         self.interrupted = interrupted
         self.pilot = Pilot(config, info)
-        self.camera = camera_from_info(info)
+        self.camera = self.pilot.camera
         self.carving = CarvingWorker(config.carving, self.camera, config.station.carve_max_position_std, self._on_carving)
         self.frames_received = 0
         self.frames_processed = 0
