@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from nao_bridge.protocol import Truth, decode  # noqa: E402
+from station.carving_worker import position_std  # noqa: E402
 from station.foxglove import ellipse_points  # noqa: E402
 from station.mcap_log import LogError, read_log  # noqa: E402
 from station.topics import COVERAGE, EKF, KEYFRAME, MEASUREMENT, POSE, TRUTH  # noqa: E402
@@ -179,7 +180,7 @@ def _progress(s: RunSeries):
     if s.ekf:
         t = [e["t"] - t0 for e in s.ekf]
         P = np.array([e["P"] for e in s.ekf])
-        a2.semilogy(t, [1000 * math.sqrt(max(np.linalg.eigvalsh(p[:2, :2])[-1], 0)) for p in P], label="centre std (largest axis)")
+        a2.semilogy(t, [1000 * position_std(p) for p in P], label="centre std (largest axis)")
         a2.semilogy(t, 1000 * np.sqrt(np.maximum(P[:, 2, 2], 0)), label="radius std")
     a2.set_ylabel("std (mm)")
     a2.set_xlabel("time (s)")
