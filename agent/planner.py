@@ -52,7 +52,7 @@ from typing import Callable, Dict, Literal, Optional, Tuple
 import numpy as np
 from scipy.optimize import minimize
 
-from agent.camera import wrap_angle
+from agent.camera import CameraModel, wrap_angle
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
 from agent.motion import camera_poses, object_in_view, rollout_poses
@@ -258,8 +258,7 @@ class Planner:
         cls, params: PlannerParams, robot: RobotModel, resolution: str, ekf: Optional[EKFParams] = None, seed: int = 0
     ) -> "Planner":
         """A planner with the walk limits, field of view, head yaw limits and camera offset of ``robot``."""
-        intr = robot.camera.intrinsics(resolution)
-        hfov = 2.0 * math.atan(0.5 * intr.width / intr.fx)
+        hfov = CameraModel.from_intrinsics(robot.camera.intrinsics(resolution)).hfov
         return cls(params, robot.walk, hfov, robot.head.yaw, robot.camera.offset[0], ekf, seed)
 
     @property

@@ -24,6 +24,7 @@ from typing import Dict, List
 
 import numpy as np
 
+from agent.camera import CameraModel
 from agent.ekf import load_ekf_params
 from agent.planner import PlannerParams, load_planner_params
 from agent.sim2d import SimResult, SimRobot, random_scenario, simulate
@@ -37,8 +38,8 @@ FIGURE_D_MIN = (0.6, 1.0)
 
 def sim_robot() -> SimRobot:
     model = load_robot_model()
-    intr = model.camera.intrinsics("vga")
-    return SimRobot(model.walk, 2.0 * math.atan(0.5 * intr.width / intr.fx), model.head.yaw, model.camera.offset[0])
+    hfov = CameraModel.from_intrinsics(model.camera.intrinsics("vga")).hfov
+    return SimRobot(model.walk, hfov, model.head.yaw, model.camera.offset[0])
 
 
 def figure(result: SimResult, d_min: float, path: Path) -> None:
