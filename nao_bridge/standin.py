@@ -25,16 +25,13 @@ import time
 from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Union
 
 import cv2
-import numpy as np
 import qi
 
-from .naoqi_backend import BATTERY_KEY, COLOR_SPACE_IDS, FALL_KEYS, RESOLUTION_IDS, TOP_CAMERA
+from .naoqi_backend import BATTERY_KEY, COLOR_SPACE_IDS, FALL_KEYS, HEAD_JOINTS, RESOLUTION_IDS, TOP_CAMERA
 from .robot_model import load_robot_model
 from .sim import SimWorld
 
 log = logging.getLogger(__name__)
-
-HEAD_JOINTS = ("HeadYaw", "HeadPitch")
 
 
 class Call(NamedTuple):
