@@ -227,6 +227,19 @@ class Bridge:
         self.ignored[cause] += 1  # caller holds self._lock
         self._log_limited(f"ignore-{cause}", "ignored %s: %s", what, cause)
 
+    def _admit(self, kind: str, seq: int) -> bool:
+        """Not shutting down, station alive if required, seq newer: then record seq (caller holds the lock)."""
+        if self._shutdown:
+            self._ignore("shutdown", f"{kind} command")
+        elif self.params.require_station and not self._station_alive:
+            self._ignore("no_station", f"{kind} command")
+        elif seq <= self._last_seq[kind]:
+            self._ignore("stale_seq", f"{kind} command seq {seq}")
+        else:
+            self._last_seq[kind] = seq
+            return True
+        return False
+
     def _on_walk(self, sample: zenoh.Sample) -> None:
         command = self._decode(sample, WalkCommand)
         if command is None:
@@ -234,13 +247,8 @@ class Bridge:
         with self._lock:
             if self._fallen:
                 return self._ignore("fallen", "walk command")
-            if self._shutdown:
-                return self._ignore("shutdown", "walk command")
-            if self.params.require_station and not self._station_alive:
-                return self._ignore("no_station", "walk command")
-            if command.seq <= self._last_seq["walk"]:
-                return self._ignore("stale_seq", f"walk command seq {command.seq}")
-            self._last_seq["walk"] = command.seq
+            if not self._admit("walk", command.seq):
+                return
             if command.ttl <= 0.0:
                 return self._ignore("expired", f"walk command seq {command.seq}")
             now = time.monotonic()
@@ -253,13 +261,8 @@ class Bridge:
         if command is None:
             return
         with self._lock:
-            if self._shutdown:
-                return self._ignore("shutdown", "head command")
-            if self.params.require_station and not self._station_alive:
-                return self._ignore("no_station", "head command")
-            if command.seq <= self._last_seq["head"]:
-                return self._ignore("stale_seq", f"head command seq {command.seq}")
-            self._last_seq["head"] = command.seq
+            if not self._admit("head", command.seq):
+                return
         yaw, pitch = self.model.head.clamp(command.yaw, command.pitch)
         self._head_box.put((yaw, pitch, min(command.speed, self.params.head_speed_max)))
         self._wake_actuator.set()
