@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Dict, Literal, Sequence, Tuple, Union
 
@@ -82,11 +83,11 @@ class Scenario:
     def world_points(self) -> np.ndarray:
         return np.vstack([p.world_points(self.position, self.yaw) for p in self.parts])
 
-    @property
+    @cached_property  # the scenario is frozen; SimWorld.truth() asks at every state tick
     def height(self) -> float:
         return float(self.world_points()[:, 2].max())
 
-    @property
+    @cached_property
     def radius(self) -> float:
         """Radius of the smallest vertical cylinder about the object centre that holds the object."""
         pts = self.world_points()
