@@ -125,8 +125,7 @@ def simulate(
     hist = {k: [] for k in ("poses", "cameras", "estimates", "covariances", "commands", "measurements", "coverage")}
     first_estimate, terms, reason = None, [], "step_limit"
     for k in range(steps):
-        ahead = pose[:2] + np.array([math.cos(pose[2]), math.sin(pose[2])])
-        target = ekf.x[:2] if ekf.initialized else ahead
+        target = ekf.x[:2] if ekf.initialized else pose[:2] + np.array([math.cos(pose[2]), math.sin(pose[2])])
         cam = camera_poses(pose, target, robot.head_yaw_limits, robot.camera_offset)
         seen = bool(object_in_view(truth, cam, robot.hfov, p.max_range))
         phi, delta = measure(truth, cam) + noise_std * rng.standard_normal(2) if seen else (np.nan, np.nan)
@@ -162,7 +161,7 @@ def simulate(
         else:
             plan = planner.plan(pose, ekf.x, ekf.P, coverage)
             terms.append(plan.terms)
-            command = robot.walk.clamp(*plan.command)
+            command = plan.command  # already clamped to the walk limits by the planner
         command = np.array(command)
         hist["commands"].append(command)
         pose = rollout_poses(pose, command[2:], command[0], p.period, command[1])[0]
