@@ -25,7 +25,7 @@ from typing import Dict, List
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.ekf import load_ekf_params
+from agent.ekf import EKFParams, load_ekf_params
 from agent.planner import PlannerParams, load_planner_params
 from agent.sim2d import SimResult, SimRobot, random_scenario, simulate
 from nao_bridge.config import ConfigError, main_error
@@ -110,8 +110,7 @@ def score(results: List[SimResult], clearance: float) -> Dict[str, str]:
     }
 
 
-def comparison(params: PlannerParams, robot: SimRobot, seeds: int) -> str:
-    ekf = load_ekf_params()
+def comparison(params: PlannerParams, ekf: EKFParams, robot: SimRobot, seeds: int) -> str:
     variants = {
         "passive circle (initial guess)": (params, "circle"),
         "paper's cost as printed": (dataclasses.replace(params, **PAPER_FORMS), "planner"),
@@ -151,16 +150,16 @@ def main(argv: List[str] | None = None) -> int:
         params = load_planner_params(args.config)
     except ConfigError as exc:
         return main_error(exc)
-    robot = sim_robot()
+    robot, ekf = sim_robot(), load_ekf_params()
     if not args.no_figures:
         truth, start = np.array([0.0, 0.0, 0.1]), np.array([2.0, 0.6, math.pi])
         for d_min in FIGURE_D_MIN:
-            result = simulate(truth, start, dataclasses.replace(params, d_min=d_min), load_ekf_params(), robot, seed=0)
+            result = simulate(truth, start, dataclasses.replace(params, d_min=d_min), ekf, robot, seed=0)
             path = args.img / f"planner_dmin_{d_min:.1f}.png"
             figure(result, d_min, path)
             print(f"plan_sim: wrote {path} ({result.reason})", file=sys.stderr)
     if not args.no_table:
-        table = comparison(params, robot, args.seeds)
+        table = comparison(params, ekf, robot, args.seeds)
         print(table)
         write_table(args.out, table, args.seeds)
         print(f"plan_sim: wrote the table into {args.out}", file=sys.stderr)
