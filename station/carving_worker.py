@@ -13,7 +13,6 @@ and ``error`` says why.
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 from typing import Callable, List, Optional, Tuple
@@ -22,13 +21,9 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, estimate_footprint, volume_bounds
+from agent.ekf import position_std
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
-
-
-def position_std(P: np.ndarray) -> float:
-    """Largest standard deviation of the estimated centre (x, y), m."""
-    return math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(P)[:2, :2])[-1]), 0.0))
 
 
 def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], params: CarvingParams,

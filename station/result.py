@@ -25,8 +25,8 @@ import numpy as np
 
 from agent.mission import Outcome
 from agent.carving import VoxelCarver
+from agent.ekf import position_std
 from nao_bridge.protocol import State, Truth, TruthObject, decode
-from station.carving_worker import position_std
 from station.mcap_log import read_log
 from station.topics import COVERAGE, KEYFRAME, STATE, TRUTH
 
