@@ -189,7 +189,6 @@ class Truth:
     object: TruthObject
 
 
-Message = Union[WalkCommand, HeadCommand, State, FrameMeta, Info, Truth]
 MESSAGE_TYPES: Dict[str, Type[Any]] = {c.TYPE: c for c in (WalkCommand, HeadCommand, State, FrameMeta, Info, Truth)}
 M = TypeVar("M")
 
