@@ -187,13 +187,12 @@ class _MarkerBoard:
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         front = np.dot(self.landmark.normal, view.centre - self.centre) > 0
-        board_C = view.to_camera(self.board_W)
         if not front:
             _fill_hull(image, view, self.board_W, (150, 150, 150))
             return
         _fill_hull(image, view, self.board_W, _shade((240, 240, 240), self.landmark.normal, ambient=0.85))
         corners_C = view.to_camera(self.corners_W)
-        if (corners_C[:, 2] < NEAR).any() or (board_C[:, 2] < NEAR).all():
+        if (corners_C[:, 2] < NEAR).any() or (view.to_camera(self.board_W)[:, 2] < NEAR).all():
             return
         uv = view.project(corners_C).astype(np.float32)
         x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 1
