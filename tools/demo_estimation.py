@@ -108,12 +108,13 @@ def circling_runs(
     return traces
 
 
-def _ellipse(ax, centre: np.ndarray, cov: np.ndarray, **style) -> None:
+def sigma_ellipse(ax, centre: np.ndarray, cov: np.ndarray, sigmas: float = 3.0, **style) -> None:
+    """Draw the ``sigmas``-sigma ellipse of the 2x2 covariance ``cov`` around ``centre`` on ``ax``."""
     from matplotlib.patches import Ellipse
 
     values, vectors = np.linalg.eigh(cov)
     angle = math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-    width, height = 2.0 * 3.0 * np.sqrt(np.maximum(values[::-1], 0.0))
+    width, height = 2.0 * sigmas * np.sqrt(np.maximum(values[::-1], 0.0))
     ax.add_patch(Ellipse(centre, width, height, angle=angle, fill=False, **style))
 
 
@@ -136,7 +137,7 @@ def plot(trace: Trace, out: Path) -> list[Path]:
         ax.plot(trace.cams[:, 0], trace.cams[:, 1], "k.-", ms=3, lw=0.5, label="camera path")
         for k, color in zip(shown, colors):
             ax.plot(*x[k, :2], "+", color=color)
-            _ellipse(ax, x[k, :2], P[k, :2, :2], color=color, lw=1.2, label=f"view {k}: 3-sigma")
+            sigma_ellipse(ax, x[k, :2], P[k, :2, :2], color=color, lw=1.2, label=f"view {k}: 3-sigma")
             ax.add_patch(plt.Circle(x[k, :2], x[k, 2], fill=False, ls=":", color=color, lw=0.8))
         ax.set_aspect("equal")
         ax.set_xlim(truth[0] - half_width, truth[0] + half_width)

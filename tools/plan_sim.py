@@ -30,6 +30,7 @@ from agent.planner import PlannerParams, load_planner_params
 from agent.sim2d import SimResult, SimRobot, random_scenario, simulate
 from nao_bridge.config import ConfigError, main_error
 from nao_bridge.robot_model import load_robot_model
+from tools.demo_estimation import sigma_ellipse
 
 PAPER_FORMS = dict(uncertainty_form="paper", view_form="paper", coverage_form="paper", distance_form="paper")
 TABLE_BEGIN, TABLE_END = "<!-- plan_sim:table -->", "<!-- /plan_sim:table -->"
@@ -47,7 +48,7 @@ def figure(result: SimResult, d_min: float, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle, Ellipse
+    from matplotlib.patches import Circle
 
     fig, ax = plt.subplots(figsize=(6.4, 6.4))
     truth = result.truth
@@ -61,10 +62,7 @@ def figure(result: SimResult, d_min: float, path: Path) -> None:
     for k in np.unique(np.geomspace(1, len(result.poses) - 1, 8).astype(int)):
         x, P = result.estimates[k], result.covariances[k]
         if np.all(np.isfinite(x)):
-            vals, vecs = np.linalg.eigh(P[:2, :2])
-            angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-            w, h = 4.0 * np.sqrt(np.maximum(vals[::-1], 0.0))
-            ax.add_patch(Ellipse(x[:2], w, h, angle=angle, fill=False, color="darkorange", lw=1.2))
+            sigma_ellipse(ax, x[:2], P[:2, :2], sigmas=2.0, color="darkorange", lw=1.2)
     ax.plot(*result.poses[:, :2].T, "-", color="k", lw=1.0, label="robot path")
     ax.plot(*result.poses[::5, :2].T, "o", ms=3, color="k")
     ax.plot(*result.poses[0, :2], "s", ms=7, color="tab:green", label="start")
