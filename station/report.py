@@ -13,6 +13,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Union
 
@@ -54,11 +55,16 @@ class RunSeries:
         series.ekf = [e for e in series.ekf if e["x"] is not None]
         return series
 
+    @cached_property
+    def _truth_stamps(self) -> List[float]:
+        """Stamps of ``truth``, built once (truth_at runs for every pose)."""
+        return [tr.stamp for tr in self.truth]
+
     def truth_at(self, stamp: float) -> Optional[Truth]:
         """The truth message nearest in (bridge) time to ``stamp``."""
         if not self.truth:
             return None
-        stamps = [tr.stamp for tr in self.truth]
+        stamps = self._truth_stamps
         i = bisect.bisect_left(stamps, stamp)
         candidates = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
         return self.truth[min(candidates, key=lambda j: abs(stamps[j] - stamp))]
