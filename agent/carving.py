@@ -47,6 +47,7 @@ their order, so adding views one at a time (live) or all at once (offline) gives
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -173,14 +174,21 @@ def _checked_view(mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> Tu
     return binary, camera
 
 
+@functools.lru_cache(maxsize=4)
+def _undistort_maps(K: bytes, dist: bytes, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:
+    """Pixel maps from the ideal pinhole to the distorted image (float64 K and dist as bytes). Every
+    view of a run shares one camera, and a VGA map costs about 5 ms: it is computed once."""
+    K_, dist_ = np.frombuffer(K).reshape(3, 3), np.frombuffer(dist)
+    return cv2.initUndistortRectifyMap(K_, dist_, None, K_, size, cv2.CV_32FC1)
+
+
 def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
     """The silhouette as seen by the ideal pinhole with the same K (see the module docstring)."""
     dist = np.asarray(camera.dist, dtype=float).ravel()
     if not np.any(dist):
         return mask01
     K = np.asarray(camera.K, dtype=float)
-    size = (camera.width, camera.height)
-    map_x, map_y = cv2.initUndistortRectifyMap(K, dist, None, K, size, cv2.CV_32FC1)
+    map_x, map_y = _undistort_maps(K.tobytes(), dist.tobytes(), (camera.width, camera.height))
     ideal = cv2.remap(mask01, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
     return cv2.dilate(ideal, np.ones((3, 3), np.uint8))
 
@@ -193,7 +201,7 @@ def _dilated(silhouette: np.ndarray, radius: int) -> np.ndarray:
 
 
 def _floor_extension(silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> np.ndarray:
-    """Rows below the image (see the module docstring, floor prior): the bottom row's silhouette
+    """Rows below the image (``floor_prior``, docs/carving.md): the bottom row's silhouette
     runs shrunk toward the vanishing point of the downward vertical, plus one pixel of slack.
 
     Empty (no rows) when vertical lines do not converge below the image (camera not looking down).
