@@ -50,7 +50,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
-from agent.camera import CameraModel, invert, planar_pose, planar_transform, wrap_angle
+from agent.camera import CameraModel, camera_in_world, invert, planar_pose, wrap_angle
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_bridge.config import bounds
 from nao_bridge.landmark_map import Landmark, LandmarkMap
@@ -317,7 +317,7 @@ class RobotLocalizer:
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None) -> Optional[PoseFix]:
         """The pose fix of one frame on its own (no jump gate, no fusion), or None."""
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        T_WC_prior = None if prior is None else planar_transform(*prior) @ T_BC
+        T_WC_prior = None if prior is None else camera_in_world(prior, T_BC)
         ids, world, pixels = [], [], []
         if T_WC_prior is not None:
             ids, world, pixels = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC_prior))
@@ -404,7 +404,7 @@ class RobotLocalizer:
         return (float(p[0]), float(p[1]), wrap_angle(float(p[2]))), rms, J
 
     def _accept_jump(self, prior: Pose, fix: PoseFix) -> bool:
-        diff = np.array([fix.pose[0] - prior[0], fix.pose[1] - prior[1], wrap_angle(fix.pose[2] - prior[2])])
+        diff = _difference(fix.pose, prior)
         std = np.sqrt(np.diag(self.covariance + fix.covariance))
         floor = np.array([self.params.jump_floor[0], self.params.jump_floor[0], self.params.jump_floor[1]])
         if np.all(np.abs(diff) <= self.params.jump_sigmas * std + floor):
@@ -422,12 +422,16 @@ class RobotLocalizer:
             pose, P = np.array(fix.pose), fix.covariance
         else:
             K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
-            innovation = np.array([fix.pose[0] - prior[0], fix.pose[1] - prior[1], wrap_angle(fix.pose[2] - prior[2])])
-            pose = np.array(prior) + K @ innovation
+            pose = np.array(prior) + K @ _difference(fix.pose, prior)
             P = (np.eye(3) - K) @ self.covariance
         self.covariance = 0.5 * (P + P.T)
         fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
+
+
+def _difference(a: Pose, b: Pose) -> np.ndarray:
+    """a - b with the heading difference wrapped."""
+    return np.array([a[0] - b[0], a[1] - b[1], wrap_angle(a[2] - b[2])])
 
 
 def _merge_boxes(boxes: List[List[int]]) -> List[Tuple[int, int, int, int]]:
