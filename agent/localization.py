@@ -220,23 +220,23 @@ class LandmarkDetector:
                 image.append(uv.reshape(1, 2))
         return ids, world, image
 
-    def _associate(self, landmarks: List[Landmark], blobs: np.ndarray, camera: CameraModel, T_WC: Optional[np.ndarray]):
+    def _associate(self, landmarks: List[Landmark], centroids: np.ndarray, camera: CameraModel, T_WC: Optional[np.ndarray]):
         """(landmark, blob centroid) pairs that are unambiguous under the prior's projections."""
-        if len(blobs) == 0:
+        if len(centroids) == 0:
             return []
         if T_WC is None:
-            return [(landmarks[0], blobs[0])] if len(landmarks) == 1 and len(blobs) == 1 else []
+            return [(landmarks[0], centroids[0])] if len(landmarks) == 1 and len(centroids) == 1 else []
         predicted, in_front = camera.project_world(np.array([lm.position for lm in landmarks]), T_WC)
         gate = self.params.color_gate
-        distances = np.linalg.norm(blobs[:, None, :] - predicted[None, :, :], axis=2)
+        distances = np.linalg.norm(centroids[:, None, :] - predicted[None, :, :], axis=2)
         distances[:, ~in_front] = np.inf
         within = distances <= gate
         pairs = []
-        for b in range(len(blobs)):
+        for b in range(len(centroids)):
             candidates = np.flatnonzero(within[b])
             # Unambiguous: one landmark within the gate of this blob, and this blob the only one near it.
             if len(candidates) == 1 and within[:, candidates[0]].sum() == 1:
-                pairs.append((landmarks[candidates[0]], blobs[b]))
+                pairs.append((landmarks[candidates[0]], centroids[b]))
         return pairs
 
 
