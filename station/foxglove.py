@@ -36,13 +36,14 @@ from scipy.spatial.transform import Rotation
 
 from agent.camera import CameraModel
 from nao_bridge.landmark_map import LandmarkMap
+from station.mcap_log import to_ns
 
 WORLD, ODOM, ROBOT, CAMERA = "world", "odom", "robot", "camera"
 
 
 def stamp(t: float) -> Timestamp:
     ts = Timestamp()
-    ts.FromNanoseconds(int(round(t * 1e9)))
+    ts.FromNanoseconds(to_ns(t))
     return ts
 
 
