@@ -59,6 +59,7 @@ import trimesh
 from numba import njit
 
 from agent.camera import CameraModel, invert
+from agent.ekf import position_std
 from agent.mesh import occupancy_to_mesh
 from nao_bridge.config import CONFIG_DIR, bounds, load
 
@@ -119,7 +120,7 @@ def volume_bounds(
         cov = np.asarray(covariance, dtype=float)
         if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
             raise ValueError(f"covariance: expected a finite 3x3 matrix of (x, y, r), got shape {cov.shape}")
-        spread = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)) + math.sqrt(max(cov[2, 2], 0.0))
+        spread = position_std(cov) + math.sqrt(max(cov[2, 2], 0.0))
     rho = radius + params.margin + params.sigma_scale * spread
     top = params.max_height
     for mask, camera, T_WC in views:
