@@ -4,7 +4,7 @@ Conventions (docs/frames.md): the camera frame is OpenCV's optical frame (x righ
 z forward). Poses are 4x4 homogeneous transforms named ``T_AB`` mapping points of frame B into
 frame A: ``p_A = T_AB @ p_B``. The world W has z up and the floor at z = 0; the robot frame B is
 NAO's FRAME_ROBOT; the camera-in-robot transform ``T_BC`` arrives in the optical convention (the
-NAO-camera to optical conversion is done once, at the bridge: ``nao_bridge.robot_model``).
+NAO-camera to optical conversion is done once, at the bridge: ``nao_core.robot_model``).
 
 Pixel to ray (undistorted by OpenCV's iterative model inversion)::
 
@@ -27,17 +27,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from nao_core.geometry import invert
 
 # OpenCV's default undistortion stops after a few iterations (about 1e-4 deg of error); iterate to
 # convergence instead so that back-projected rays are exact to well below a micro-radian.
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
 
-
-def wrap_angle(a):
-    """Wrap angles to (-pi, pi]; works on floats and arrays."""
-    w = np.mod(np.asarray(a, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
-    w = np.where(w == -np.pi, np.pi, w)
-    return float(w) if np.ndim(w) == 0 else w
 
 
 @dataclass(frozen=True)
@@ -91,29 +86,8 @@ class CameraModel:
         return uv, in_front
 
 
-def invert(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid transform."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
 
 
-def planar_transform(x: float, y: float, theta: float) -> np.ndarray:
-    """T_WB of a robot at (x, y, theta) on the floor."""
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-
-
-def planar_pose(T_WB: np.ndarray) -> tuple[float, float, float]:
-    """(x, y, theta) of a transform: translation on the floor and yaw of its x axis."""
-    return float(T_WB[0, 3]), float(T_WB[1, 3]), math.atan2(T_WB[1, 0], T_WB[0, 0])
-
-
-def camera_in_world(robot_pose: tuple[float, float, float], T_BC: np.ndarray) -> np.ndarray:
-    """T_WC = T_WB(x, y, theta) @ T_BC."""
-    return planar_transform(*robot_pose) @ np.asarray(T_BC, dtype=float)
 
 
 def ray_azimuths(rays_C: np.ndarray, T_WC: np.ndarray) -> np.ndarray:
@@ -126,17 +100,3 @@ def optical_axis_heading(T_WC: np.ndarray) -> float:
     """Azimuth psi of the optical axis (the camera's z) projected on the floor."""
     z = T_WC[:3, 2]
     return math.atan2(z[1], z[0])
-
-
-def bearing_width_from_pixels(
-    camera: CameraModel, left_px: np.ndarray, right_px: np.ndarray, T_WC: np.ndarray
-) -> tuple[float, float, float]:
-    """Centre azimuth (world), bearing relative to the optical-axis heading, and apparent width.
-
-    ``left_px``/``right_px`` are the silhouette's extreme left and right pixels (u, v). Returns
-    (azimuth_W, phi, delta) with phi = wrap(azimuth_W - psi) and delta = a_l - a_r (wrapped).
-    """
-    a_l, a_r = ray_azimuths(camera.pixels_to_rays(np.vstack([left_px, right_px])), T_WC)
-    delta = wrap_angle(a_l - a_r)
-    azimuth = wrap_angle(a_r + 0.5 * delta)
-    return azimuth, wrap_angle(azimuth - optical_axis_heading(T_WC)), delta

@@ -58,10 +58,11 @@ import numpy as np
 import trimesh
 from numba import njit
 
-from agent.camera import CameraModel, invert
+from agent.camera import CameraModel
 from agent.ekf import position_std
 from agent.mesh import occupancy_to_mesh
-from nao_bridge.config import CONFIG_DIR, bounds, load
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import invert
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
 """(silhouette mask HxW bool/uint8, camera, T_WC 4x4 in the optical convention)."""

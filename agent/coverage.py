@@ -24,7 +24,7 @@ from typing import List, Tuple
 
 import numpy as np
 
-from nao_bridge.config import bounds
+from nao_core.config import bounds
 
 
 @dataclass(frozen=True)

@@ -94,8 +94,8 @@ import numpy as np
 from numba import njit
 from scipy.stats import chi2
 
-from agent.camera import wrap_angle
-from nao_bridge.config import CONFIG_DIR, bounds, load
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import wrap_angle
 
 WidthModel = Literal["asin", "paper_atan"]
 

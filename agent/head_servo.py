@@ -2,7 +2,8 @@
 
 Model-based target: the point t = (x_o, y_o, h_aim) (the estimated centre at the object's visible
 middle) is put on the optical axis by fixed-point iteration on its direction in the camera frame
-(optical: x right, y down, z forward), with the kinematics T_BC(yaw, pitch) of the robot model::
+(optical: x right, y down, z forward), with the kinematics T_BC(yaw, pitch) of the robot model
+(``RobotModel.look_at``)::
 
     (x, y, z) = T_BC(yaw, pitch)^-1 T_WB(pose)^-1 t,   yaw <- yaw - atan2(x, z),   pitch <- pitch + atan2(y, z)
 
@@ -15,16 +16,11 @@ large yaw).
 
 from __future__ import annotations
 
-import math
 from typing import Optional, Sequence, Tuple
 
-import numpy as np
-
-from agent.camera import CameraModel, invert, planar_transform
+from agent.camera import CameraModel
 from agent.perception import PerceptionParams, object_pixel_direction
-from nao_bridge.robot_model import RobotModel
-
-FIXED_POINT_ITERATIONS = 8  # the camera's offset from the neck makes one step slightly short
+from nao_core.robot_model import RobotModel
 
 
 def head_target(
@@ -44,12 +40,7 @@ def head_target(
     """
     if pose is None or object_x is None:
         return robot_model.head.clamp(0.0, params.search_pitch)
-    target_W = np.array([float(object_x[0]), float(object_x[1]), params.aim_height, 1.0])
-    target_B = invert(planar_transform(*(float(p) for p in pose))) @ target_W
-    yaw = pitch = 0.0
-    for _ in range(FIXED_POINT_ITERATIONS):
-        x, y, z = (invert(robot_model.camera_in_robot(yaw, pitch)) @ target_B)[:3]
-        yaw, pitch = robot_model.head.clamp(yaw - math.atan2(x, z), pitch + math.atan2(y, z))
+    yaw, pitch = robot_model.look_at(pose, (float(object_x[0]), float(object_x[1]), params.aim_height))
     if centroid_uv is not None and camera is not None and head_at_capture is not None and params.servo_gain > 0.0:
         horizontal, vertical = object_pixel_direction(camera, centroid_uv)
         g = params.servo_gain

@@ -50,12 +50,19 @@ from typing import Dict, List, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
-from agent.camera import CameraModel, camera_in_world, invert, planar_pose, wrap_angle
+from agent.camera import CameraModel
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
-from nao_bridge.config import bounds
-from nao_bridge.landmark_map import Landmark, LandmarkMap
-
-Pose = Tuple[float, float, float]
+from nao_core.config import bounds
+from nao_core.geometry import (
+    Pose,
+    camera_in_world,
+    compose,
+    invert,
+    planar_pose,
+    relative,
+    wrap_angle,
+)
+from nao_core.landmark_map import Landmark, LandmarkMap
 
 
 @dataclass(frozen=True)
@@ -104,17 +111,6 @@ _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 _PNP_FLAGS = {"sqpnp": cv2.SOLVEPNP_SQPNP, "iterative": cv2.SOLVEPNP_ITERATIVE, "epnp": cv2.SOLVEPNP_EPNP}
 
 
-def compose(a: Pose, b: Pose) -> Pose:
-    """a (+) b: pose b expressed in frame a, as a pose in a's parent frame."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])
-
-
-def relative(a: Pose, b: Pose) -> Pose:
-    """(-a) (+) b: pose b seen from pose a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])
 
 
 class LandmarkDetector:

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Optional, Tuple
 
-from nao_bridge.config import bounds
+from nao_core.config import bounds
 
 
 class Phase(str, Enum):

@@ -31,8 +31,8 @@ from typing import Tuple
 
 import numpy as np
 
-from agent.camera import wrap_angle
 from agent.ekf import measure
+from nao_core.geometry import wrap_angle
 
 
 def rollout_poses(

@@ -51,8 +51,9 @@ from typing import Dict, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
-from agent.camera import CameraModel, optical_axis_heading, ray_azimuths, wrap_angle
-from nao_bridge.config import bounds
+from agent.camera import CameraModel, optical_axis_heading, ray_azimuths
+from nao_core.config import bounds
+from nao_core.geometry import wrap_angle
 
 MIN_IMAGE_SIDE = 16  # px: anything smaller is not a camera frame
 COARSE_WIDTH = 160  # px: the object's colour is first looked for on the frame reduced to this width

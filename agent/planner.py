@@ -52,12 +52,13 @@ from typing import Callable, Dict, Literal, Optional, Tuple
 import numpy as np
 from scipy.optimize import minimize
 
-from agent.camera import CameraModel, wrap_angle
+from agent.camera import CameraModel
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
 from agent.motion import camera_poses, object_in_view, rollout_poses
-from nao_bridge.config import CONFIG_DIR, bounds, load
-from nao_bridge.robot_model import RobotModel, WalkLimits
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import wrap_angle
+from nao_core.robot_model import RobotModel, WalkLimits
 
 CLEARANCE_WEIGHT = 1e6
 FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient

@@ -6,39 +6,15 @@ promptly even while another thread is blocked in ``grab_frame``.
 
 All times are the bridge machine's clock (``time.time()``, seconds): a backend that reads
 timestamps in another clock (NAOqi's images carry the robot's clock) converts them.
-Camera poses are in the optical convention (``nao_bridge.robot_model``).
+Camera poses are in the optical convention (``nao_core.robot_model``).
 """
 
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Optional
 
-import numpy as np
-
-
-@dataclass(frozen=True)
-class CameraFrame:
-    """One top-camera image with everything measured at its capture time."""
-
-    image: np.ndarray  # H x W x 3 uint8, BGR
-    stamp: float  # capture time, bridge clock, s
-    head_yaw: float  # rad
-    head_pitch: float  # rad
-    T_BC: np.ndarray  # 4 x 4 camera-in-robot at capture, optical convention
-    odom: Tuple[float, float, float]  # odometry pose (x, y, theta) at capture
-
-
-@dataclass(frozen=True)
-class RobotState:
-    stamp: float
-    odom: Tuple[float, float, float]
-    head_yaw: float
-    head_pitch: float
-    walking: bool
-    fallen: bool
-    battery: float  # charge fraction in [0, 1]
+from nao_core.records import CameraFrame, RobotState
 
 
 class RobotBackend(abc.ABC):

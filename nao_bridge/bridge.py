@@ -35,10 +35,10 @@ from typing import Any, Callable, Dict, Optional, Tuple
 import cv2
 import zenoh
 
-from .backend import RobotBackend
-from .config import bounds, from_mapping
-from .naoqi_backend import NaoqiParams
-from .protocol import (
+from nao_bridge.backend import RobotBackend
+from nao_bridge.naoqi_backend import NaoqiParams
+from nao_core.config import bounds, from_mapping
+from nao_core.protocol import (
     FrameMeta,
     HeadCommand,
     Info,
@@ -51,8 +51,8 @@ from .protocol import (
     encode,
     encode_frame,
 )
-from .robot_model import RobotModel
-from .transport import TransportConfig, open_session
+from nao_core.robot_model import RobotModel
+from nao_core.transport import TransportConfig, open_session
 
 log = logging.getLogger(__name__)
 

@@ -20,11 +20,11 @@ import sys
 import threading
 from typing import List, Optional
 
-from .backend import RobotBackend
-from .bridge import Bridge, BridgeParams
-from .config import CONFIG_DIR, ConfigError, load, main_error
-from .robot_model import RobotModel, load_robot_model
-from .transport import TransportConfig
+from nao_bridge.backend import RobotBackend
+from nao_bridge.bridge import Bridge, BridgeParams
+from nao_core.config import CONFIG_DIR, ConfigError, load, main_error
+from nao_core.robot_model import RobotModel, load_robot_model
+from nao_core.transport import TransportConfig
 
 log = logging.getLogger("nao_bridge")
 
@@ -72,14 +72,13 @@ def load_model(params: BridgeParams) -> RobotModel:
 
 def make_backend(args: argparse.Namespace, params: BridgeParams, model: RobotModel) -> RobotBackend:
     if args.sim:
-        from .sim import SimBackend, SimWorld
+        from nao_bridge.sim_backend import SimBackend
 
         try:
-            world = SimWorld(args.scenario, model, resolution=params.resolution, seed=args.seed)
+            return SimBackend.in_new_world(args.scenario, model, params.resolution, args.seed, params.fps)
         except KeyError as exc:
             raise ConfigError(f"--scenario: {exc.args[0]}") from None
-        return SimBackend(world, fps=params.fps)
-    from .naoqi_backend import NaoqiBackend
+    from nao_bridge.naoqi_backend import NaoqiBackend
 
     return NaoqiBackend(args.naoqi, model, params.naoqi, params.resolution, params.fps)
 

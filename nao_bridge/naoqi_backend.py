@@ -44,19 +44,22 @@ import cv2
 import numpy as np
 import qi
 
-from .backend import CameraFrame, RobotBackend, RobotState
-from .config import bounds
-from .robot_model import RobotModel, nao_to_optical
+from nao_bridge.backend import RobotBackend
+from nao_core.config import bounds
+from nao_core.naoqi_api import (
+    BATTERY_KEY,
+    COLOR_SPACE_IDS,
+    FALL_KEYS,
+    FRAME_ROBOT,
+    HEAD_JOINTS,
+    RESOLUTION_IDS,
+    TOP_CAMERA,
+)
+from nao_core.records import CameraFrame, RobotState
+from nao_core.robot_model import RobotModel, nao_to_optical
 
 log = logging.getLogger(__name__)
 
-TOP_CAMERA = 0
-FRAME_ROBOT = 2
-RESOLUTION_IDS = {"qqvga": 0, "qvga": 1, "vga": 2, "4vga": 3}
-COLOR_SPACE_IDS = {"yuv422": 9, "bgr": 13}
-HEAD_JOINTS = ["HeadYaw", "HeadPitch"]
-FALL_KEYS = ("robotHasFallen", "ALMotion/RobotIsFalling")
-BATTERY_KEY = "Device/SubDeviceList/Battery/Charge/Sensor/Value"
 
 
 @dataclass(frozen=True)

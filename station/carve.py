@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from agent.carving import VoxelCarver
 from agent.perception import extract_silhouette
-from nao_bridge.protocol import FrameMeta, decode
+from nao_core.protocol import FrameMeta, decode
 from station.carving_worker import View, carve_views
 from station.mcap_log import LogError, read_log
 from station.pilot import camera_from_info

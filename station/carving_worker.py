@@ -20,7 +20,14 @@ from typing import Callable, List, Optional, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.carving import CarvingParams, HullMetrics, VoxelCarver, carve, estimate_footprint, volume_bounds
+from agent.carving import (
+    CarvingParams,
+    HullMetrics,
+    VoxelCarver,
+    carve,
+    estimate_footprint,
+    volume_bounds,
+)
 from agent.ekf import position_std
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]

@@ -27,8 +27,8 @@ from typing import List, Optional
 import yaml
 
 from agent.mesh import save_mesh
-from nao_bridge.config import ConfigError, main_error
-from nao_bridge.transport import TransportConfig
+from nao_core.config import ConfigError, main_error
+from nao_core.transport import TransportConfig
 from station.config import StationConfig, load_station_config
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable

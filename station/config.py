@@ -24,8 +24,8 @@ from agent.localization import LocalizationParams
 from agent.mission import MissionParams
 from agent.perception import PerceptionParams
 from agent.planner import PlannerParams
-from nao_bridge.config import CONFIG_DIR, ConfigError, bounds, load, read_yaml
-from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
+from nao_core.config import CONFIG_DIR, ConfigError, bounds, load, read_yaml
+from nao_core.landmark_map import LandmarkMap, load_landmark_map
 
 
 @dataclass(frozen=True)

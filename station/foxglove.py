@@ -35,7 +35,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from scipy.spatial.transform import Rotation
 
 from agent.camera import CameraModel
-from nao_bridge.landmark_map import LandmarkMap
+from nao_core.landmark_map import LandmarkMap
 from station.mcap_log import to_ns
 
 WORLD, ODOM, ROBOT, CAMERA = "world", "odom", "robot", "camera"

@@ -19,8 +19,8 @@ from typing import List, Tuple
 
 import zenoh
 
-from nao_bridge.protocol import HeadCommand, Info, RobotKeys, WalkCommand, decode, encode
-from nao_bridge.transport import TransportConfig, open_session
+from nao_core.protocol import HeadCommand, Info, RobotKeys, WalkCommand, decode, encode
+from nao_core.transport import TransportConfig, open_session
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import cv2
 import numpy as np
 
-from agent.camera import CameraModel, camera_in_world, optical_axis_heading, wrap_angle
+from agent.camera import CameraModel, optical_axis_heading
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
 from agent.head_servo import head_target
@@ -41,10 +41,20 @@ from agent.localization import RobotLocalizer
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
-from nao_bridge.protocol import Frame, Info, State
-from nao_bridge.robot_model import RobotModel
+from nao_core.geometry import camera_in_world, wrap_angle
+from nao_core.protocol import Frame, Info, State
+from nao_core.robot_model import RobotModel
 from station.config import StationConfig
-from station.topics import COVERAGE, DECISION, EKF, FRAME_REJECTED, KEYFRAME, MEASUREMENT, PLAN, POSE
+from station.topics import (
+    COVERAGE,
+    DECISION,
+    EKF,
+    FRAME_REJECTED,
+    KEYFRAME,
+    MEASUREMENT,
+    PLAN,
+    POSE,
+)
 
 Output = Tuple[str, Dict[str, Any]]
 

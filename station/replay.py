@@ -20,14 +20,23 @@ from typing import Any, Dict, Iterator, List, Optional, Tuple, Union
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from tqdm import tqdm
 
-from nao_bridge.config import from_mapping
-from nao_bridge.landmark_map import LandmarkMap
-from nao_bridge.protocol import Frame, FrameMeta, Info, State, decode
+from nao_core.config import from_mapping
+from nao_core.landmark_map import LandmarkMap
+from nao_core.protocol import Frame, FrameMeta, Info, State, decode
 from station.config import SECTIONS, StationConfig
 from station.mcap_log import LogError, encode_json, read_log
 from station.pilot import Pilot, Step
 from station.run import code_digest
-from station.topics import AGENT_PREFIX, CONFIG, DECISION, FRAME_IMAGE, FRAME_META, INFO, INPUT, STATE
+from station.topics import (
+    AGENT_PREFIX,
+    CONFIG,
+    DECISION,
+    FRAME_IMAGE,
+    FRAME_META,
+    INFO,
+    INPUT,
+    STATE,
+)
 
 
 def load_setup(path: Union[str, Path]) -> Tuple[StationConfig, Info]:

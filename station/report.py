@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from agent.ekf import position_std  # noqa: E402
-from nao_bridge.protocol import Truth, decode  # noqa: E402
+from nao_core.protocol import Truth, decode  # noqa: E402
 from station.foxglove import ellipse_points  # noqa: E402
 from station.mcap_log import LogError, read_log  # noqa: E402
 from station.topics import COVERAGE, EKF, KEYFRAME, MEASUREMENT, POSE, TRUTH  # noqa: E402

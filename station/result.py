@@ -23,10 +23,10 @@ from typing import Any, Dict, Optional, Tuple, Union
 
 import numpy as np
 
-from agent.mission import Outcome
 from agent.carving import VoxelCarver
 from agent.ekf import position_std
-from nao_bridge.protocol import State, Truth, TruthObject, decode
+from agent.mission import Outcome
+from nao_core.protocol import State, Truth, TruthObject, decode
 from station.mcap_log import read_log
 from station.topics import COVERAGE, KEYFRAME, STATE, TRUTH
 

@@ -32,10 +32,20 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from agent.camera import invert, planar_transform
 from agent.mission import Outcome, Phase
-from nao_bridge.protocol import (
-    Frame, HeadCommand, Info, ProtocolError, State, Truth, WalkCommand, decode, decode_frame, encode, json_schema,
+from nao_core.geometry import invert, planar_transform
+from nao_core.protocol import (
+    Frame,
+    HeadCommand,
+    Info,
+    ProtocolError,
+    State,
+    Truth,
+    WalkCommand,
+    decode,
+    decode_frame,
+    encode,
+    json_schema,
 )
 from station import foxglove
 from station.carving_worker import CarvingWorker
@@ -44,8 +54,25 @@ from station.link import BridgeLink, Received
 from station.mcap_log import McapLog
 from station.pilot import Pilot, Step
 from station.topics import (
-    CALIBRATION, CARVING, CMD_HEAD, CMD_WALK, CONFIG, FRAME_IMAGE, FRAME_META, INFO, INPUT, REJECTED, SCENE_KEYFRAMES,
-    SCENE_LANDMARKS, SCENE_MODEL, SCENE_OBJECT, STATE, TF, TRUTH, EKF, POSE,
+    CALIBRATION,
+    CARVING,
+    CMD_HEAD,
+    CMD_WALK,
+    CONFIG,
+    EKF,
+    FRAME_IMAGE,
+    FRAME_META,
+    INFO,
+    INPUT,
+    POSE,
+    REJECTED,
+    SCENE_KEYFRAMES,
+    SCENE_LANDMARKS,
+    SCENE_MODEL,
+    SCENE_OBJECT,
+    STATE,
+    TF,
+    TRUTH,
 )
 
 STATION_SCHEMA = {"title": "station.Json", "type": "object"}
@@ -65,12 +92,17 @@ class RunSummary:
     P: Optional[np.ndarray]
 
 
+def pilot_sources(root: Path) -> List[Path]:
+    """Every source file the pilot runs: the algorithms, the core they build on, the pilot itself."""
+    return sorted([*(root / "agent").rglob("*.py"), *(root / "nao_core").rglob("*.py"), root / "station" / "pilot.py"])
+
+
 def code_digest() -> str:
-    """SHA-256 of the agent's code (agent/*.py and the pilot): replay says when it changed since the run."""
+    """SHA-256 of the code the pilot executes (agent/, nao_core/ and the pilot): replay says when it changed."""
     root = Path(__file__).resolve().parent.parent
     digest = hashlib.sha256()
-    for path in sorted((root / "agent").glob("*.py")) + [root / "station" / "pilot.py"]:
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    for path in pilot_sources(root):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from nao_bridge.robot_model import RobotModel, load_robot_model
+from nao_core.robot_model import RobotModel, load_robot_model
 
 
 @pytest.fixture(scope="session")

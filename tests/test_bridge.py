@@ -12,23 +12,23 @@ import json
 import math
 import subprocess
 import sys
-import threading
 import time
-from typing import Callable, List
+from typing import List
 
 import cv2
 import numpy as np
 import pytest
 import zenoh
+from zenoh_peers import free_port, wait_until
 
 from nao_bridge.bridge import Bridge, BridgeParams
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.landmark_map import load_landmark_map
 from nao_bridge.naoqi_backend import NaoqiBackend
-from nao_bridge.protocol import (
+from nao_bridge.sim_backend import SimBackend
+from nao_core.config import CONFIG_DIR, load
+from nao_core.landmark_map import load_landmark_map
+from nao_core.protocol import (
     HeadCommand,
     Info,
-    ProtocolError,
     RobotKeys,
     State,
     Truth,
@@ -37,11 +37,10 @@ from nao_bridge.protocol import (
     decode_frame,
     encode,
 )
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimBackend, SimWorld
-from nao_bridge.standin import StandIn
-from nao_bridge.transport import TransportConfig, open_session
-from zenoh_peers import free_port, wait_until
+from nao_core.robot_model import load_robot_model
+from nao_core.transport import TransportConfig, open_session
+from nao_sim.standin import StandIn
+from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
 WAIT = 3.0  # s, generous: only a broken bridge waits this long

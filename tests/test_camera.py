@@ -9,17 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.camera import (
-    CameraModel,
-    bearing_width_from_pixels,
+from agent.camera import CameraModel, bearing_width_from_pixels, optical_axis_heading
+from nao_core.geometry import (
     camera_in_world,
     invert,
-    optical_axis_heading,
     planar_pose,
     planar_transform,
     wrap_angle,
 )
-from nao_bridge.robot_model import R_NAO_OPTICAL, load_robot_model, nao_to_optical
+from nao_core.robot_model import R_NAO_OPTICAL, load_robot_model, nao_to_optical
 
 ROBOT = load_robot_model()
 

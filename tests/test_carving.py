@@ -14,10 +14,27 @@ import trimesh
 from scipy import ndimage
 from skimage.measure import marching_cubes
 
-from agent.camera import CameraModel, invert
-from agent.carving import CarvingParams, VoxelCarver, carve, load_carving_params, load_npz, volume_bounds
+from agent.camera import CameraModel
+from agent.carving import (
+    CarvingParams,
+    VoxelCarver,
+    carve,
+    load_carving_params,
+    load_npz,
+    volume_bounds,
+)
 from agent.mesh import occupancy_to_mesh, save_mesh
-from tools.carving_scenes import Box, Cylinder, Sphere, Union, analytic_hull, look_at, render_mask, ring_poses
+from nao_core.geometry import invert
+from tests.carving_scenes import (
+    Box,
+    Cylinder,
+    Sphere,
+    Union,
+    analytic_hull,
+    look_at,
+    render_mask,
+    ring_poses,
+)
 
 PITCH = 0.002
 CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from nao_bridge.config import CONFIG_DIR, ConfigError
-from nao_bridge.landmark_map import load_landmark_map
-from nao_bridge.robot_model import load_robot_model
+from nao_core.config import CONFIG_DIR, ConfigError
+from nao_core.landmark_map import load_landmark_map
+from nao_core.robot_model import load_robot_model
 
 
 def write(tmp_path: Path, text: str, name: str = "override.yaml") -> Path:

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from agent.camera import wrap_angle
 from agent.coverage import Coverage, CoverageParams, bin_angles, bins_seen, seen_count
+from nao_core.geometry import wrap_angle
 
 UNIT = np.array([0.0, 0.0, 0.1])  # object at the origin, radius 10 cm
 WIDE = CoverageParams(bins=4, facing_angle=math.radians(60), distance_range=(0.2, 3.0))

@@ -12,7 +12,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from agent.camera import CameraModel, bearing_width_from_pixels, camera_in_world, optical_axis_heading, wrap_angle
+from agent.camera import CameraModel, optical_axis_heading, ray_azimuths
 from agent.ekf import (
     NOMINAL_R,
     ObjectEKF,
@@ -21,12 +21,29 @@ from agent.ekf import (
     measurement_jacobian,
     rollout_covariance,
 )
-from nao_bridge.config import ConfigError
-from nao_bridge.robot_model import load_robot_model
+from nao_core.config import ConfigError
+from nao_core.geometry import camera_in_world, wrap_angle
+from nao_core.robot_model import load_robot_model
 from tools.demo_estimation import circling_cameras, circling_runs, simulate
 
 PARAMS = load_ekf_params()
 coord = st.floats(-3.0, 3.0)
+
+
+
+def bearing_width_from_pixels(
+    camera: CameraModel, left_px: np.ndarray, right_px: np.ndarray, T_WC: np.ndarray
+) -> tuple[float, float, float]:
+    """Centre azimuth (world), bearing relative to the optical-axis heading, and apparent width.
+
+    ``left_px``/``right_px`` are the silhouette's extreme left and right pixels (u, v). Returns
+    (azimuth_W, phi, delta) with phi = wrap(azimuth_W - psi) and delta = a_l - a_r (wrapped).
+    """
+    a_l, a_r = ray_azimuths(camera.pixels_to_rays(np.vstack([left_px, right_px])), T_WC)
+    delta = wrap_angle(a_l - a_r)
+    azimuth = wrap_angle(a_r + 0.5 * delta)
+    return azimuth, wrap_angle(azimuth - optical_axis_heading(T_WC)), delta
+
 
 
 def numeric_jacobian(x: np.ndarray, cam: np.ndarray, model: str, eps: float = 1e-6) -> np.ndarray:
@@ -269,11 +286,11 @@ def test_a_lost_estimate_restarts_from_the_view_after_consecutive_gated_views():
 
 @pytest.mark.parametrize("seed, omnidirectional", [(13, False), (23, False), (15, True), (35, True)])
 def test_planner_seeds_that_used_to_diverge_converge(seed, omnidirectional):
-    """Regression (agent.sim2d): from these starts the first update after a one-view initialization used
+    """Regression (nao_sim.sim2d): from these starts the first update after a one-view initialization used
     to jump 1 to 2.9 m off with a centimetre covariance, or clamp r at its minimum, and the gate then
     rejected every view. With the inverse-range start the estimate converges; 60 steps (12 s) suffice."""
     from agent.planner import load_planner_params
-    from agent.sim2d import random_scenario, simulate
+    from nao_sim.sim2d import random_scenario, simulate
     from tools.plan_sim import sim_robot
 
     planner = dataclasses.replace(load_planner_params(), omnidirectional=omnidirectional)

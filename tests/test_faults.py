@@ -40,9 +40,9 @@ import numpy as np
 import pytest
 
 import nao_bridge.bridge as bridge_module
-from nao_bridge.protocol import FrameMeta, RobotKeys, WalkCommand, encode, encode_frame
-from nao_bridge.standin import StandIn
-from nao_bridge.transport import TransportConfig, open_session
+from nao_core.protocol import FrameMeta, RobotKeys, WalkCommand, encode, encode_frame
+from nao_core.transport import TransportConfig, open_session
+from nao_sim.standin import StandIn
 from station.launch import LocalBridge
 from station.link import BridgeLink
 from station.mcap_log import read_log
@@ -56,7 +56,7 @@ NOTICE_WITHIN = 2.0  # s: frozen bridge -> station notices (issue 8)
 
 STATION_SCRIPT = """
 import sys, time
-from nao_bridge.transport import TransportConfig
+from nao_core.transport import TransportConfig
 from station.link import BridgeLink
 link = BridgeLink(TransportConfig(connect=(sys.argv[1],), lease_ms=1000), "nao")
 link.fetch_info(timeout=10.0)

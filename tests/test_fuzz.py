@@ -1,7 +1,7 @@
 """Property-based fuzzing (hypothesis) of every decoder of outside input: no crash, no bad value through.
 
 Targets: the wire protocol's strict decoders (every JSON message type, ``decode_any``, the frame
-envelope), the YAML config loader (``nao_bridge.config.load`` on the bridge, station and transport
+envelope), the YAML config loader (``nao_core.config.load`` on the bridge, station and transport
 sections), the landmark map loader and the station's MCAP log reader. Inputs are random bytes and
 text, and structure-aware mutations of valid samples (a field replaced by a hostile value, a key
 added or removed, NaN and infinities as JSON literals, bit flips and cuts in a valid log).
@@ -33,9 +33,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nao_bridge.bridge import BridgeParams
-from nao_bridge.config import CONFIG_DIR, ConfigError, load
-from nao_bridge.landmark_map import LandmarkMap, load_landmark_map
-from nao_bridge.protocol import (
+from nao_core.config import CONFIG_DIR, ConfigError, load
+from nao_core.landmark_map import LandmarkMap, load_landmark_map
+from nao_core.protocol import (
     FRAME_MAGIC,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
@@ -49,7 +49,7 @@ from nao_bridge.protocol import (
     encode,
     to_dict,
 )
-from nao_bridge.transport import TransportConfig, open_session
+from nao_core.transport import TransportConfig, open_session
 from station.config import StationParams
 from station.mcap_log import McapLog, read_log
 from tests.test_protocol import samples

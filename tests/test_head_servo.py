@@ -9,10 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from agent.camera import CameraModel, planar_transform
+from agent.camera import CameraModel
 from agent.head_servo import head_target
 from agent.perception import PerceptionParams
-from nao_bridge.config import CONFIG_DIR, load
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import planar_transform
 
 
 @pytest.fixture(scope="module")

@@ -9,14 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.camera import CameraModel, planar_transform, wrap_angle
-from agent.localization import LocalizationParams, RobotLocalizer, compose, relative
+from agent.camera import CameraModel
+from agent.localization import LocalizationParams, RobotLocalizer
 from agent.perception import ImageError, PerceptionParams
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.landmark_map import Landmark, LandmarkMap, load_landmark_map
-from nao_bridge.sim import SimWorld
-from nao_bridge.sim.render import COLOURS_BGR
-from nao_bridge.sim.world import head_angles_towards
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import compose, planar_transform, relative, wrap_angle
+from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
+from nao_sim.render import COLOURS_BGR
+from nao_sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_aruco_fix_within_1cm_and_half_a_degree_at_2m(params, perception, robot,
     for azimuth in np.linspace(-math.pi, math.pi, 8, endpoint=False):
         pose = (-0.5 * math.cos(azimuth), -0.5 * math.sin(azimuth), azimuth + 0.1)
         target = (1.5 * math.cos(azimuth), 1.5 * math.sin(azimuth), 0.085)
-        world.teleport(pose, head_angles_towards(robot, pose, target))
+        world.teleport(pose, robot.look_at(pose, target))
         frame = world.render()
         localizer = RobotLocalizer(params, room, camera, perception)
         fix = localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
@@ -122,7 +122,7 @@ def test_odometry_carries_the_pose_and_grows_the_covariance(params, perception, 
     world = SimWorld("can", robot, "vga", seed=2)
     camera = camera_of(robot, "vga")
     pose = (-0.5, 0.0, 0.0)
-    world.teleport(pose, head_angles_towards(robot, pose, (1.5, 0.0, 0.085)))
+    world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
     frame = world.render()
     localizer = RobotLocalizer(params, room, camera, perception)
     localizer.on_odometry((1.0, 2.0, 0.5), frame.stamp - 0.1)
@@ -149,7 +149,7 @@ def test_a_jump_is_rejected_until_it_repeats(params, perception, robot, room):
     world = SimWorld("can", robot, "vga", seed=4)
     camera = camera_of(robot, "vga")
     pose = (-0.5, 0.0, 0.0)
-    world.teleport(pose, head_angles_towards(robot, pose, (1.5, 0.0, 0.085)))
+    world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
     frame = world.render()
     localizer = RobotLocalizer(params, room, camera, perception)
     localizer._correction, localizer.covariance = (0.5, 0.4, 0.0), np.diag([0.01, 0.01, 0.01]) ** 2  # a wrong prior
@@ -206,7 +206,7 @@ def test_walking_fixes_and_odometry_track_the_true_pose(params, perception, robo
     errors, fixes = [], 0
     for _ in range(60):
         clock.t += 0.1
-        world.set_head(*head_angles_towards(robot, world.truth()["robot_pose"], obj), 1.0)
+        world.set_head(*robot.look_at(world.truth()["robot_pose"], obj), 1.0)
         state = world.state()
         localizer.on_odometry(state.odom, state.stamp)
         clock.t += 0.1
@@ -231,7 +231,7 @@ def test_fix_covariance_is_not_overconfident(params, perception, robot, room):
     for _ in range(20):
         d, az = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi)
         pose = (ox + d * math.cos(az), oy + d * math.sin(az), az + math.pi)
-        world.teleport(pose, head_angles_towards(robot, pose, (ox, oy, 0.1)))
+        world.teleport(pose, robot.look_at(pose, (ox, oy, 0.1)))
         frame = world.render()
         fix = RobotLocalizer(params, room, camera, perception).on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
         truth = world.truth()["robot_pose"]
@@ -250,7 +250,7 @@ def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perc
     ox, oy = world.scenario.position
     for azimuth in (0.3, 2.2, -1.9):
         truth = (ox + 0.9 * math.cos(azimuth), oy + 0.9 * math.sin(azimuth), azimuth + math.pi)
-        world.teleport(truth, head_angles_towards(robot, truth, (ox, oy, 0.1)))
+        world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
         near = (truth[0] + 0.03, truth[1] - 0.02, truth[2] + math.radians(1.5))
         boxes = localizer.detector.predicted_boxes(camera, planar_transform(*near) @ frame.T_BC)

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from agent.mission import Mission, MissionParams, Outcome, Phase
-from nao_bridge.config import CONFIG_DIR, ConfigError, load
+from nao_core.config import CONFIG_DIR, ConfigError, load
 
 P = MissionParams(max_duration=100.0, init_timeout=2.0, search_head_yaws=(0.0, 0.5, -0.5), search_dwell=1.0,
                   search_turn_rate=0.5, search_max_turns=1.0, object_lost_timeout=3.0,

@@ -9,10 +9,16 @@ import cv2
 import numpy as np
 import pytest
 
-from nao_bridge.naoqi_backend import COLOR_SPACE_IDS, ClockOffset, NaoqiBackend, NaoqiParams, image_to_bgr
-from nao_bridge.robot_model import load_robot_model, nao_to_optical
-from nao_bridge.sim import SimWorld
-from nao_bridge.standin import StandIn
+from nao_bridge.naoqi_backend import (
+    COLOR_SPACE_IDS,
+    ClockOffset,
+    NaoqiBackend,
+    NaoqiParams,
+    image_to_bgr,
+)
+from nao_core.robot_model import load_robot_model, nao_to_optical
+from nao_sim.standin import StandIn
+from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
 BGR, YUV422 = COLOR_SPACE_IDS["bgr"], COLOR_SPACE_IDS["yuv422"]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from agent import perception
-from agent.camera import CameraModel, optical_axis_heading, planar_transform, wrap_angle
+from agent.camera import CameraModel, optical_axis_heading
 from agent.perception import (
     ColorClass,
     ImageError,
@@ -20,9 +20,9 @@ from agent.perception import (
     extract_silhouette,
     measure_object,
 )
-from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
-from nao_bridge.sim import SimWorld
-from nao_bridge.sim.world import head_angles_towards
+from nao_core.config import CONFIG_DIR, ConfigError, from_mapping, load
+from nao_core.geometry import planar_transform, wrap_angle
+from nao_sim.world import SimWorld
 from tools.benchmarks.bench_perception_width import renderer_fattening_px
 
 TEMPLE = Path("/work/shared/data/middlebury/templeSparseRing")
@@ -80,7 +80,7 @@ def cylinder_views(robot, centre, pitch_offsets=(-0.12, 0.0, 0.12)):
         for yaw_offset in (-0.3, -0.1, 0.0, 0.15, 0.3):
             for distance in (0.7, 1.1):
                 pose = (centre[0] - distance, centre[1] - 0.05, 0.1)
-                yaw, pitch = head_angles_towards(robot, pose, (centre[0], centre[1], 0.1))
+                yaw, pitch = robot.look_at(pose, (centre[0], centre[1], 0.1))
                 yield planar_transform(*pose) @ robot.camera_in_robot(yaw + yaw_offset, pitch + pitch_offset)
 
 
@@ -135,7 +135,7 @@ def test_sim_render_bearing_and_width_match_truth(params, robot, resolution):
     errors = []
     for distance, azimuth, turn in [(0.6, 0.3, 0.0), (1.0, 2.0, 0.25), (1.3, -1.5, -0.25), (0.9, -3.0, 0.1)]:
         pose = (centre[0] + distance * math.cos(azimuth), centre[1] + distance * math.sin(azimuth), azimuth + math.pi + turn)
-        world.teleport(pose, head_angles_towards(robot, pose, (*centre, 0.1)))
+        world.teleport(pose, robot.look_at(pose, (*centre, 0.1)))
         frame = world.render()
         T_WC = np.array(world.truth()["camera"]["T_WC"])
         m = measure_object(extract_silhouette(frame.image, params), camera, T_WC, params)
@@ -153,7 +153,7 @@ def test_coarse_colour_region_gives_the_full_frame_silhouette(params, robot, mon
     images = []
     for distance, azimuth, head_yaw in [(0.6, 0.3, 0.0), (2.5, 2.0, 0.1), (1.0, -1.5, 0.45), (1.0, 1.0, -0.45), (1.0, 0.0, 2.0)]:
         pose = (centre[0] + distance * math.cos(azimuth), centre[1] + distance * math.sin(azimuth), azimuth + math.pi)
-        yaw, pitch = head_angles_towards(robot, pose, (*centre, 0.1))
+        yaw, pitch = robot.look_at(pose, (*centre, 0.1))
         world.teleport(pose, (yaw + head_yaw, pitch))
         images.append(world.render().image)
     coarse = [extract_silhouette(image, params) for image in images]

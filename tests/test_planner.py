@@ -24,8 +24,8 @@ from agent.planner import (
     uncertainty_cost,
     view_cost,
 )
-from agent.sim2d import SimRobot, circle_omega, random_scenario, simulate
-from nao_bridge.robot_model import load_robot_model
+from nao_core.robot_model import load_robot_model
+from nao_sim.sim2d import SimRobot, circle_omega, random_scenario, simulate
 
 ROBOT_MODEL = load_robot_model()
 PARAMS = load_planner_params()

@@ -10,7 +10,8 @@ import jsonschema
 import numpy as np
 import pytest
 
-from nao_bridge.protocol import (
+from nao_core.config import from_mapping
+from nao_core.protocol import (
     FRAME_MAGIC,
     MAX_FRAME_BYTES,
     MAX_JSON_BYTES,
@@ -32,9 +33,8 @@ from nao_bridge.protocol import (
     json_schema,
     to_dict,
 )
-from nao_bridge.config import from_mapping
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
+from nao_core.robot_model import load_robot_model
+from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
 EYE = tuple(float(x) for x in np.eye(4).ravel())

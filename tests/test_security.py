@@ -18,9 +18,14 @@ from typing import List
 import pytest
 import zenoh
 
-from nao_bridge.config import CONFIG_DIR, ConfigError, from_mapping, load
-from nao_bridge.protocol import RobotKeys, WalkCommand, encode
-from nao_bridge.transport import TransportConfig, UserPassword, access_control, open_session
+from nao_core.config import CONFIG_DIR, ConfigError, from_mapping, load
+from nao_core.protocol import RobotKeys, WalkCommand, encode
+from nao_core.transport import (
+    TransportConfig,
+    UserPassword,
+    access_control,
+    open_session,
+)
 from tests.zenoh_peers import bridge_on_standin, free_port, lab_certificates, wait_until
 from tools.make_certs import CertError, make_lab_certificates
 from tools.make_certs import main as make_certs_main

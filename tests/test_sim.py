@@ -10,11 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from nao_bridge.landmark_map import load_landmark_map
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimBackend, SimWorld, load_sim_config
-from nao_bridge.sim.render import NEAR
-from nao_bridge.sim.world import head_angles_towards
+from nao_bridge.sim_backend import SimBackend
+from nao_core.landmark_map import load_landmark_map
+from nao_core.robot_model import load_robot_model
+from nao_sim.render import NEAR
+from nao_sim.scenarios import load_sim_config
+from nao_sim.world import SimWorld
 
 ROBOT = load_robot_model()
 CONFIG = load_sim_config()
@@ -50,7 +51,7 @@ def world_on_orbit(scenario: str, resolution: str, distance: float, azimuth: flo
     world = SimWorld(scenario, ROBOT, resolution, seed=seed, clock=FakeClock(), **kw)
     ox, oy = world.scenario.position
     pose = (ox + distance * math.cos(azimuth), oy + distance * math.sin(azimuth), azimuth + math.pi)
-    world.teleport(pose, head_angles_towards(ROBOT, pose, (ox, oy, 0.5 * world.scenario.height)))
+    world.teleport(pose, ROBOT.look_at(pose, (ox, oy, 0.5 * world.scenario.height)))
     return world
 
 
@@ -228,7 +229,7 @@ def orbit_poses(scenario, n: int, rng: np.random.Generator):
     for _ in range(n):
         d, az, heading_error = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi), rng.uniform(-0.5, 0.5)
         pose = (scenario.position[0] + d * math.cos(az), scenario.position[1] + d * math.sin(az), az + math.pi + heading_error)
-        yield pose, head_angles_towards(ROBOT, pose, target)
+        yield pose, ROBOT.look_at(pose, target)
 
 
 def test_two_markers_in_view_from_anywhere_on_the_orbit():
@@ -257,7 +258,7 @@ def test_two_markers_detected_in_qvga_renders_on_the_orbit(scenario):
 
 
 def test_landmark_map_has_no_red_and_unique_marker_ids():
-    from nao_bridge.sim.render import COLOURS_BGR
+    from nao_sim.render import COLOURS_BGR
 
     for lm in LANDMARKS.of_kind("color"):
         b, g, r = COLOURS_BGR[lm.color]

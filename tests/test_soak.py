@@ -24,8 +24,8 @@ from typing import Dict, List
 
 import pytest
 
-from nao_bridge.protocol import State, decode
-from nao_bridge.transport import TransportConfig
+from nao_core.protocol import State, decode
+from nao_core.transport import TransportConfig
 from station.launch import LocalBridge
 from station.link import BridgeLink
 

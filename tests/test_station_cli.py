@@ -9,7 +9,6 @@ import sys
 import pytest
 
 
-
 def station(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=60)
 

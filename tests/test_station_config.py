@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from nao_bridge.config import CONFIG_DIR, ConfigError
-from nao_bridge.landmark_map import load_landmark_map
+from nao_core.config import CONFIG_DIR, ConfigError
+from nao_core.landmark_map import load_landmark_map
 from station.config import SECTIONS, StationParams, load_station_config
 
 

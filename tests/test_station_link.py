@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from nao_bridge.protocol import Info, State, decode, decode_frame
-from nao_bridge.transport import TransportConfig
+from nao_core.protocol import Info, State, decode, decode_frame
+from nao_core.transport import TransportConfig
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable
 

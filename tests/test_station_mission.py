@@ -4,7 +4,7 @@
   completes, the centre is within 2 cm of the simulator's truth, coverage >= 90 %, the log reads
   without warnings, `station replay` reproduces every decision, `station carve` gives a watertight
   mesh that contains the object.
-* The same mission through the NAOqi stand-in (`nao_bridge.standin` over libqi, `station start --naoqi`).
+* The same mission through the NAOqi stand-in (`nao_sim.standin` over libqi, `station start --naoqi`).
 * Every failure outcome: the bridge runs in this process (so the test can make the robot fall,
   hide the object or the landmarks), the station is a separate process; the robot ends stopped,
   the log is readable, result.json says why, the exit code says failure.
@@ -33,12 +33,13 @@ import pytest
 import trimesh
 
 from nao_bridge.bridge import Bridge, BridgeParams
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.landmark_map import LandmarkMap
-from nao_bridge.protocol import State, WalkCommand, decode
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimBackend, SimWorld
-from nao_bridge.sim.render import Renderer
+from nao_bridge.sim_backend import SimBackend
+from nao_core.config import CONFIG_DIR, load
+from nao_core.landmark_map import LandmarkMap
+from nao_core.protocol import State, WalkCommand, decode
+from nao_core.robot_model import load_robot_model
+from nao_sim.render import Renderer
+from nao_sim.world import SimWorld
 from station.launch import free_port
 from station.mcap_log import read_log
 from station.topics import CMD_WALK, DECISION, STATE
@@ -197,7 +198,7 @@ def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission
 
 def test_standin_mission_through_qi_completes(tmp_path):
     port = free_port()
-    standin = subprocess.Popen([PY, "-m", "nao_bridge.standin", "--scenario", "can", "--resolution", "qvga", "--seed", "2",
+    standin = subprocess.Popen([PY, "-m", "nao_sim.standin", "--scenario", "can", "--resolution", "qvga", "--seed", "2",
                                 "--listen", f"tcp://127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         time.sleep(2.0)  # libqi listening

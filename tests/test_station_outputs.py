@@ -7,15 +7,23 @@ import math
 import numpy as np
 import pytest
 
-from agent.camera import CameraModel, camera_in_world
+from agent.camera import CameraModel
 from agent.mission import Outcome
-from nao_bridge.protocol import State, Truth, encode, json_schema
-from nao_bridge.protocol.messages import TruthObject
-from nao_bridge.robot_model import load_robot_model
+from nao_core.geometry import camera_in_world
+from nao_core.protocol import State, Truth, encode, json_schema
+from nao_core.protocol.messages import TruthObject
+from nao_core.robot_model import load_robot_model
 from station import foxglove
 from station.mcap_log import McapLog
 from station.report import write_report
-from station.result import EXIT_FAILURE, EXIT_SUCCESS, EXIT_TIME_LIMIT, exit_code, log_figures, status_of
+from station.result import (
+    EXIT_FAILURE,
+    EXIT_SUCCESS,
+    EXIT_TIME_LIMIT,
+    exit_code,
+    log_figures,
+    status_of,
+)
 from station.topics import COVERAGE, EKF, KEYFRAME, MEASUREMENT, POSE, STATE, TRUTH
 
 

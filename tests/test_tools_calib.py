@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from agent.perception import ColorClass, color_mask
-from nao_bridge.config import from_mapping
-from nao_bridge.robot_model import load_robot_model
+from nao_core.config import from_mapping
+from nao_core.robot_model import load_robot_model
 from tools import calibrate_camera, pick_colors
 
 K_TRUE = np.array([[587.0, 0.0, 318.0], [0.0, 590.0, 243.0], [0.0, 0.0, 1.0]])

@@ -10,12 +10,12 @@ from pathlib import Path
 from typing import Callable, Iterator, Tuple
 
 from nao_bridge.bridge import Bridge, BridgeParams
-from nao_bridge.config import CONFIG_DIR, load
 from nao_bridge.naoqi_backend import NaoqiBackend
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.standin import StandIn
-from nao_bridge.transport import TransportConfig
+from nao_core.config import CONFIG_DIR, load
+from nao_core.robot_model import load_robot_model
+from nao_core.transport import TransportConfig
+from nao_sim.standin import StandIn
+from nao_sim.world import SimWorld
 from station.launch import free_port
 from tools.make_certs import make_lab_certificates
 

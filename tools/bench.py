@@ -11,8 +11,8 @@ import argparse
 import datetime
 import importlib
 import os
-import platform
 import pkgutil
+import platform
 import re
 import sys
 from pathlib import Path

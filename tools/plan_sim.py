@@ -5,7 +5,7 @@
 
 Figures: the corrected cost from one start for two values of d_min (the paper's Fig. 4): path,
 measured bearing rays, 2-sigma position ellipses of the estimate, true object. Table: over N
-seeds (:func:`agent.sim2d.random_scenario`), a passive circle at d_min around the first estimate,
+seeds (:func:`nao_sim.sim2d.random_scenario`), a passive circle at d_min around the first estimate,
 the paper's cost as printed, the corrected cost on the unicycle and with the lateral speed
 (``omnidirectional``), all with the CEM optimizer, scored against the true object: final centre and
 radius errors, runs that saw every bin, steps and path length to full coverage, closest approach
@@ -27,9 +27,9 @@ import numpy as np
 from agent.camera import CameraModel
 from agent.ekf import EKFParams, load_ekf_params
 from agent.planner import PlannerParams, load_planner_params
-from agent.sim2d import SimResult, SimRobot, random_scenario, simulate
-from nao_bridge.config import ConfigError, main_error
-from nao_bridge.robot_model import load_robot_model
+from nao_core.config import ConfigError, main_error
+from nao_core.robot_model import load_robot_model
+from nao_sim.sim2d import SimResult, SimRobot, random_scenario, simulate
 from tools.demo_estimation import sigma_ellipse
 
 PAPER_FORMS = dict(uncertainty_form="paper", view_form="paper", coverage_form="paper", distance_form="paper")

@@ -51,10 +51,10 @@ def replay_main(port: int, seconds: float) -> None:
 
     from nao_bridge.backend import CameraFrame, RobotBackend, RobotState
     from nao_bridge.bridge import Bridge, BridgeParams
-    from nao_bridge.config import CONFIG_DIR, load
-    from nao_bridge.robot_model import load_robot_model
-    from nao_bridge.sim import SimWorld
-    from nao_bridge.transport import TransportConfig
+    from nao_core.config import CONFIG_DIR, load
+    from nao_core.robot_model import load_robot_model
+    from nao_core.transport import TransportConfig
+    from nao_sim.world import SimWorld
 
     model = load_robot_model()
     world = SimWorld("can", model, resolution="vga", seed=0)
@@ -98,8 +98,8 @@ def replay_main(port: int, seconds: float) -> None:
 def _measure(proc: subprocess.Popen, port: int) -> dict:
     import zenoh
 
-    from nao_bridge.protocol import RobotKeys, decode_frame
-    from nao_bridge.transport import TransportConfig, open_session
+    from nao_core.protocol import RobotKeys, decode_frame
+    from nao_core.transport import TransportConfig, open_session
 
     received: List[tuple] = []
     session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
@@ -131,7 +131,7 @@ def _measure(proc: subprocess.Popen, port: int) -> dict:
 def _run_naoqi() -> dict:
     python = sys.executable
     standin = subprocess.Popen(
-        [python, "-m", "nao_bridge.standin", "--resolution", "vga", "--listen", f"tcp://127.0.0.1:{_free_port()}"],
+        [python, "-m", "nao_sim.standin", "--resolution", "vga", "--listen", f"tcp://127.0.0.1:{_free_port()}"],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )
     bridge = None

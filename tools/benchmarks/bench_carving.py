@@ -18,9 +18,18 @@ from typing import Callable, List, Tuple
 
 import numpy as np
 
-from agent.camera import CameraModel, invert
-from agent.carving import CarvingParams, VoxelCarver, View, carve
-from tools.carving_scenes import Box, Cylinder, Sphere, Union, analytic_hull, render_mask, ring_poses
+from agent.camera import CameraModel
+from agent.carving import CarvingParams, View, VoxelCarver, carve
+from nao_core.geometry import invert
+from tests.carving_scenes import (
+    Box,
+    Cylinder,
+    Sphere,
+    Union,
+    analytic_hull,
+    render_mask,
+    ring_poses,
+)
 
 CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))
 FIGURE = Union(

@@ -18,8 +18,14 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
-from agent.camera import wrap_angle
-from agent.ekf import ObjectEKF, load_ekf_params, measure, measurement_jacobian, rollout_covariance
+from agent.ekf import (
+    ObjectEKF,
+    load_ekf_params,
+    measure,
+    measurement_jacobian,
+    rollout_covariance,
+)
+from nao_core.geometry import wrap_angle
 from tools.demo_estimation import circling_runs
 
 DT = 0.2

@@ -25,14 +25,14 @@ import time
 
 import numpy as np
 
-from agent.camera import CameraModel, camera_in_world
-from agent.localization import LocalizationParams, RobotLocalizer, compose
+from agent.camera import CameraModel
+from agent.localization import LocalizationParams, RobotLocalizer
 from agent.perception import PerceptionParams, extract_silhouette, measure_object
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.landmark_map import load_landmark_map
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.sim.world import head_angles_towards
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import camera_in_world, compose
+from nao_core.landmark_map import load_landmark_map
+from nao_core.robot_model import load_robot_model
+from nao_sim.world import SimWorld
 
 FRAMES = 80
 PASSES = 3
@@ -60,7 +60,7 @@ def _frames(resolution: str, tracking: bool):
         else:
             d, az = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi)
             pose = (ox + d * math.cos(az), oy + d * math.sin(az), az + math.pi)
-        world.teleport(pose, head_angles_towards(robot, pose, (ox, oy, 0.1)))
+        world.teleport(pose, robot.look_at(pose, (ox, oy, 0.1)))
         frames.append((world.render(), compose(drift, pose)))
     intr = robot.camera.intrinsics(resolution)
     return frames, CameraModel.from_intrinsics(intr)

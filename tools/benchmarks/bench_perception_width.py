@@ -13,13 +13,13 @@ import math
 
 import numpy as np
 
-from agent.camera import CameraModel, optical_axis_heading, wrap_angle
+from agent.camera import CameraModel, optical_axis_heading
 from agent.perception import PerceptionParams, extract_silhouette, measure_object
-from nao_bridge.config import CONFIG_DIR, load
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.sim.render import fill_convex_polygon
-from nao_bridge.sim.world import head_angles_towards
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import wrap_angle
+from nao_core.robot_model import load_robot_model
+from nao_sim.render import fill_convex_polygon
+from nao_sim.world import SimWorld
 
 VIEWS = 45
 
@@ -52,7 +52,7 @@ def width_errors(resolution: str, views: int = VIEWS) -> dict:
     for _ in range(views):
         d, az, turn = rng.uniform(0.6, 1.5), rng.uniform(-math.pi, math.pi), rng.uniform(-0.25, 0.25)
         pose = (centre[0] + d * math.cos(az), centre[1] + d * math.sin(az), az + math.pi + turn)
-        world.teleport(pose, head_angles_towards(robot, pose, (*centre, 0.1)))
+        world.teleport(pose, robot.look_at(pose, (*centre, 0.1)))
         frame = world.render()
         T_WC = np.array(world.truth()["camera"]["T_WC"])
         m = measure_object(extract_silhouette(frame.image, params), camera, T_WC, params)

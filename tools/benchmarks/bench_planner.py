@@ -19,8 +19,8 @@ import numpy as np
 from agent.coverage import Coverage
 from agent.ekf import load_ekf_params
 from agent.planner import Planner, load_planner_params
-from agent.sim2d import SimRobot, simulate
-from nao_bridge.robot_model import load_robot_model
+from nao_core.robot_model import load_robot_model
+from nao_sim.sim2d import SimRobot, simulate
 
 HORIZONS = (5, 10, 20)
 STRIDE = 3

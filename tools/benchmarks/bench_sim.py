@@ -15,9 +15,8 @@ import time
 
 import numpy as np
 
-from nao_bridge.robot_model import load_robot_model
-from nao_bridge.sim import SimWorld
-from nao_bridge.sim.world import head_angles_towards
+from nao_core.robot_model import load_robot_model
+from nao_sim.world import SimWorld
 
 FRAMES = 120
 
@@ -39,7 +38,7 @@ def _orbit_render_times(scenario: str, resolution: str) -> tuple:
     for _ in range(FRAMES):
         d, az = rng.uniform(0.6, 1.2), rng.uniform(-math.pi, math.pi)
         pose = (ox + d * math.cos(az), oy + d * math.sin(az), az + math.pi)
-        world.teleport(pose, head_angles_towards(robot, pose, (ox, oy, 0.5 * world.scenario.height)))
+        world.teleport(pose, robot.look_at(pose, (ox, oy, 0.5 * world.scenario.height)))
         w0, c0 = time.perf_counter(), time.process_time()
         world.render()
         wall.append(time.perf_counter() - w0)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nao_bridge.transport import TransportConfig
+from nao_core.transport import TransportConfig
 from station.config import load_station_config
 from station.launch import LocalBridge
 from station.link import BridgeLink

@@ -9,7 +9,7 @@ Decoding is strict and every rejection raises :class:`ProtocolError` with a ``re
 :data:`REASONS` (what the bridge counts) and a detail naming the field. Checks, in order: size,
 magic and version byte (frames), UTF-8 and JSON syntax, NaN/Infinity (not JSON, but Python's
 parser accepts them), ``v``, ``type``, missing and unknown fields, then types and ranges of the
-values through the project's strict converter (``nao_bridge.config.from_mapping``) with the
+values through the project's strict converter (``nao_core.config.from_mapping``) with the
 ``bounds`` declared on each field. Protocol bounds are wide sanity limits; clamping to the robot's
 limits is the bridge's job, after decoding.
 """
@@ -21,11 +21,22 @@ import json
 import math
 import struct
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Dict, Literal, NamedTuple, Optional, Tuple, Type, TypeVar, Union
+from typing import (
+    Any,
+    ClassVar,
+    Dict,
+    Literal,
+    NamedTuple,
+    Optional,
+    Tuple,
+    Type,
+    TypeVar,
+    Union,
+)
 
-from ..config import ConfigError, bounds, from_mapping
-from ..robot_model import CameraIntrinsics, RobotModel
-from .schema import message_schema
+from nao_core.config import ConfigError, bounds, from_mapping
+from nao_core.protocol.schema import message_schema
+from nao_core.robot_model import CameraIntrinsics, RobotModel
 
 PROTOCOL_VERSION = 1
 MAX_JSON_BYTES = 64 * 1024

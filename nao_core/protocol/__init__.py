@@ -4,8 +4,8 @@ Key expressions (:class:`RobotKeys`), message classes with strict decoding, the 
 envelope and the JSON Schemas of every message type. Imported by the bridge and the station.
 """
 
-from .keys import RobotKeys
-from .messages import (
+from nao_core.protocol.keys import RobotKeys
+from nao_core.protocol.messages import (
     FRAME_MAGIC,
     MAX_FRAME_BYTES,
     MAX_JSON_BYTES,

@@ -34,8 +34,8 @@ from typing import Any, Dict, Optional, Tuple, Union
 import yaml
 import zenoh
 
-from .config import CONFIG_DIR, ConfigError, bounds
-from .protocol.keys import RobotKeys
+from nao_core.config import CONFIG_DIR, ConfigError, bounds
+from nao_core.protocol.keys import RobotKeys
 
 ROLES = ("bridge", "station", "viewer")
 

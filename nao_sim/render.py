@@ -33,9 +33,9 @@ from typing import List, Sequence, Tuple
 import cv2
 import numpy as np
 
-from ..landmark_map import Landmark, LandmarkMap
-from ..robot_model import CameraIntrinsics
-from .scenarios import Part, Room, Scenario
+from nao_core.landmark_map import Landmark, LandmarkMap
+from nao_core.robot_model import CameraIntrinsics
+from nao_sim.scenarios import Part, Room, Scenario
 
 NEAR = 0.02  # m, near clipping plane
 SHIFT = 4  # sub-pixel bits of cv2 polygon filling

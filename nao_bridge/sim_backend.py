@@ -11,8 +11,10 @@ import threading
 import time
 from typing import Optional
 
-from ..backend import CameraFrame, RobotBackend, RobotState
-from .world import SimWorld
+from nao_bridge.backend import RobotBackend
+from nao_core.records import CameraFrame, RobotState
+from nao_core.robot_model import RobotModel
+from nao_sim.world import SimWorld
 
 
 class SimBackend(RobotBackend):
@@ -25,6 +27,11 @@ class SimBackend(RobotBackend):
         self._closed = threading.Event()
         self._next_slot: Optional[float] = None
         self._grab_lock = threading.Lock()
+
+    @classmethod
+    def in_new_world(cls, scenario: str, model: RobotModel, resolution: str, seed: int, fps: float) -> "SimBackend":
+        """A backend on a fresh simulated world; KeyError names an unknown scenario."""
+        return cls(SimWorld(scenario, model, resolution=resolution, seed=seed), fps=fps)
 
     def start(self) -> None:
         self._closed.clear()

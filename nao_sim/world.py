@@ -33,45 +33,23 @@ import math
 import numbers
 import threading
 import time
-from typing import Callable, Optional, Sequence, Tuple, Union
+from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
 
-from ..backend import CameraFrame, RobotState
-from ..landmark_map import load_landmark_map
-from ..robot_model import RobotModel, nao_to_optical
-from .render import Renderer
-from .scenarios import Scenario, SimConfig, load_sim_config
+from nao_core.geometry import Pose, planar_transform, rot_x
+from nao_core.landmark_map import load_landmark_map
+from nao_core.records import CameraFrame, RobotState
+from nao_core.robot_model import RobotModel, nao_to_optical
+from nao_sim.render import Renderer
+from nao_sim.scenarios import Scenario, SimConfig, load_sim_config
 
-Pose = Tuple[float, float, float]
 BODY_RADIUS = 0.15  # m, how close the robot's origin gets to a wall
 MOVING = 1e-3  # sway amplitude above which the robot counts as walking
 FACE_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # Ry(+90 deg): up becomes forward
 
 
-def _planar(x: float, y: float, theta: float) -> np.ndarray:
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0, 0.0], [0.0, c, -s, 0.0], [0.0, s, c, 0.0], [0.0, 0.0, 0.0, 1.0]])
-
-
-def head_angles_towards(robot: RobotModel, pose: Pose, target_W: Sequence[float], iterations: int = 8) -> Tuple[float, float]:
-    """Head (yaw, pitch) that put the world point ``target_W`` on the optical axis, clamped to the limits.
-
-    Fixed-point iteration on the target's direction in the optical frame (x right, y down, z forward):
-    yaw -= atan2(x, z), pitch += atan2(y, z), then ``robot.head.clamp``.
-    """
-    T_CW = np.linalg.inv(_planar(*pose))
-    target = T_CW @ np.append(np.asarray(target_W, dtype=float), 1.0)
-    yaw = pitch = 0.0
-    for _ in range(iterations):
-        x, y, z = (np.linalg.inv(robot.camera_in_robot(yaw, pitch)) @ target)[:3]
-        yaw, pitch = robot.head.clamp(yaw - math.atan2(x, z), pitch + math.atan2(y, z))
-    return yaw, pitch
 
 
 def _integrate(pose: np.ndarray, dx: float, dy: float, dtheta: float) -> None:
@@ -205,7 +183,7 @@ class SimWorld:
             T[2, 3] = self._dyn.fallen_camera_height + self.robot.camera.offset[0]  # camera at that height
             return T
         sway, a, phi = self._dyn.sway, self._amplitude * fraction, self._phase
-        T = _rot_x(a * sway.roll * math.sin(phi))
+        T = rot_x(a * sway.roll * math.sin(phi))
         T[1, 3] = a * sway.lateral * math.sin(phi)
         T[2, 3] = a * sway.bob * 0.5 * (math.cos(2.0 * phi) - 1.0)
         return T
@@ -267,12 +245,6 @@ class SimWorld:
                 self._head[:] = self._head_target[:] = self.robot.head.clamp(*head)
 
     # -- readings ------------------------------------------------------------------------------
-
-    def time(self) -> float:
-        """World time (s, the clock of ``clock``), at most one step behind it."""
-        with self._lock:
-            self._advance()
-            return self._time
 
     def head_angles(self) -> Tuple[float, float]:
         with self._lock:
@@ -341,7 +313,7 @@ class SimWorld:
             self._advance()
             stamp, head = self._time, self._head.copy()
             T_BC = nao_to_optical(self._camera_nao(self._dyn.sway.reported_fraction))
-            T_WC = _planar(*self._pose) @ nao_to_optical(self._camera_nao(1.0))
+            T_WC = planar_transform(*self._pose) @ nao_to_optical(self._camera_nao(1.0))
             odom = _pose_tuple(self._odom)
             self._frames += 1
             index = self._frames

@@ -11,7 +11,7 @@ The camera behaves like NAOqi's: a new image every 1/fps on the robot's clock, w
 ``clock_offset`` seconds ahead of the bridge's; asking sooner returns the same image with the same
 stamp (a duplicate); the buffer is latin-1 text in BGR or packed YUYV, as requested.
 
-    python -m nao_bridge.standin --scenario can      # serve until Ctrl-C, print the URL
+    python -m nao_sim.standin --scenario can      # serve until Ctrl-C, print the URL
 """
 
 from __future__ import annotations
@@ -27,9 +27,16 @@ from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Union
 import cv2
 import qi
 
-from .naoqi_backend import BATTERY_KEY, COLOR_SPACE_IDS, FALL_KEYS, HEAD_JOINTS, RESOLUTION_IDS, TOP_CAMERA
-from .robot_model import load_robot_model
-from .sim import SimWorld
+from nao_core.naoqi_api import (
+    BATTERY_KEY,
+    COLOR_SPACE_IDS,
+    FALL_KEYS,
+    HEAD_JOINTS,
+    RESOLUTION_IDS,
+    TOP_CAMERA,
+)
+from nao_core.robot_model import load_robot_model
+from nao_sim.world import SimWorld
 
 log = logging.getLogger(__name__)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import importlib.resources
 import math
 import sys
 import typing
@@ -27,7 +28,21 @@ import yaml
 
 T = TypeVar("T")
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
+def _config_dir() -> Path:
+    """The shipped defaults: the repository's ``config/``, packaged in the wheel as ``nao_core.defaults``.
+
+    A source checkout or an editable install reads ``config/`` next to the package; an installed
+    wheel reads its package data through ``importlib.resources``.
+    """
+    source = Path(__file__).resolve().parent.parent / "config"
+    if source.is_dir():
+        return source
+    return Path(str(importlib.resources.files("nao_core.defaults")))
+
+
+CONFIG_DIR = _config_dir()
 
 
 class ConfigError(ValueError):

@@ -28,12 +28,12 @@ from typing import List, Literal, Optional, Tuple
 
 import numpy as np
 
-from agent.camera import wrap_angle
 from agent.coverage import Coverage, bins_seen
 from agent.ekf import EKFParams, ObjectEKF, measure
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from agent.planner import Planner, PlannerParams, termination_reason
-from nao_bridge.robot_model import WalkLimits
+from nao_core.geometry import wrap_angle
+from nao_core.robot_model import WalkLimits
 
 Policy = Literal["planner", "circle"]
 CIRCLE_GAIN = 2.0

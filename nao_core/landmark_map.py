@@ -18,7 +18,7 @@ from typing import Literal, Optional, Tuple, Union
 
 import numpy as np
 
-from .config import bounds, load
+from nao_core.config import bounds, load
 
 ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
 

@@ -1,7 +1,7 @@
 """Simulator configuration: the room, the scenarios (object + robot start), dynamics and noise.
 
 Loaded from ``config/sim.yaml`` (top-level key ``sim``) with the strict loader of
-``nao_bridge.config``. An object is a union of red *parts* in its own frame O (origin on the floor
+``nao_core.config``. An object is a union of red *parts* in its own frame O (origin on the floor
 at the object's centre, z up), placed in the world at ``position`` with heading ``yaw``:
 
 * ``cylinder``: vertical, centred at ``centre`` (x, y, z of its middle), ``size`` = (diameter,
@@ -23,7 +23,8 @@ from typing import Dict, Literal, Sequence, Tuple, Union
 
 import numpy as np
 
-from ..config import CONFIG_DIR, bounds, load
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import rot2
 
 
 @dataclass(frozen=True)
@@ -46,19 +47,15 @@ class Part:
         sx, sy, sz = (0.5 * s for s in self.size)
         if self.shape == "box":
             local = np.array([[x, y, z] for z in (-sz, sz) for x, y in ((-sx, -sy), (sx, -sy), (sx, sy), (-sx, sy))])
-            local[:, :2] = local[:, :2] @ _rot2(self.yaw).T
+            local[:, :2] = local[:, :2] @ rot2(self.yaw).T
         else:
             a = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
             ring = np.stack([sx * np.cos(a), sx * np.sin(a)], axis=1)
             local = np.vstack([np.column_stack([ring, np.full(samples, z)]) for z in (-sz, sz)])
         local = local + np.asarray(self.centre)
-        local[:, :2] = local[:, :2] @ _rot2(yaw).T + np.asarray(position)
+        local[:, :2] = local[:, :2] @ rot2(yaw).T + np.asarray(position)
         return local
 
-
-def _rot2(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """JSON Schema (draft 2020-12) of a protocol message, derived from its dataclass.
 
 The dataclass is the single source of truth: the strict decoder converts with the same field
-types and ``bounds`` metadata (``nao_bridge.config.from_mapping``), so schema and decoder agree.
+types and ``bounds`` metadata (``nao_core.config.from_mapping``), so schema and decoder agree.
 The station registers these schemas in MCAP (encoding ``jsonschema``) and logs the bytes received.
 """
 

@@ -29,7 +29,8 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .config import CONFIG_DIR, bounds, load
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import Pose, invert, planar_transform, rot_y, rot_z
 
 # Columns are the optical axes (x right, y down, z forward) expressed in the NAO camera frame
 # (x forward, y left, z up): x_opt = -y_nao, y_opt = -z_nao, z_opt = x_nao.
@@ -135,24 +136,33 @@ class RobotModel:
         """T_BC (optical convention) for the given head angles: the kinematic chain of the docstring."""
         return nao_to_optical(self.camera_in_robot_nao(yaw, pitch))
 
+    def look_at(self, pose: Pose, target_W: Sequence[float], iterations: int = 8) -> Tuple[float, float]:
+        """Head (yaw, pitch) that put the world point ``target_W`` on the optical axis, clamped to the limits.
+
+        Fixed-point iteration on the target's direction in the optical frame (x right, y down, z forward)::
+
+            (x, y, z) = T_BC(yaw, pitch)^-1 T_WB(pose)^-1 t,   yaw <- yaw - atan2(x, z),   pitch <- pitch + atan2(y, z)
+
+        then ``head.clamp`` (pitch limits shrink at large yaw). Several iterations, because the
+        camera's offset from the neck makes one step slightly short.
+        """
+        target_B = invert(planar_transform(*(float(p) for p in pose))) @ np.append(np.asarray(target_W, dtype=float)[:3], 1.0)
+        yaw = pitch = 0.0
+        for _ in range(iterations):
+            x, y, z = (invert(self.camera_in_robot(yaw, pitch)) @ target_B)[:3]
+            yaw, pitch = self.head.clamp(yaw - math.atan2(x, z), pitch + math.atan2(y, z))
+        return yaw, pitch
+
     def camera_in_robot_nao(self, yaw: float, pitch: float) -> np.ndarray:
         """The same pose in NAO's camera convention, as ALMotion.getTransform reports it."""
         T = np.eye(4)
         T[2, 3] = self.neck_height
-        T = T @ _rot_z(yaw) @ _rot_y(pitch)
+        T = T @ rot_z(yaw) @ rot_y(pitch)
         offset = np.eye(4)
         offset[:3, 3] = self.camera.offset
-        return T @ offset @ _rot_y(self.camera.tilt)
+        return T @ offset @ rot_y(self.camera.tilt)
 
 
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1.0]])
 
 
 def load_robot_model(
