@@ -47,11 +47,12 @@ their order, so adding views one at a time (live) or all at once (offline) gives
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Optional, Sequence, Tuple, Union
+from typing import Iterable, List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
@@ -281,6 +282,11 @@ class VoxelCarver:
             d = self._dims[level]
             living = living.reshape(d[0], 2, d[1], 2, d[2], 2).any(axis=(1, 3, 5))
             self._alive[self._offsets[level] : self._offsets[level] + sizes[level]] = living.ravel()
+        # Floor prior: the same carve without it, and each view's evidence (projection matrix, silhouette),
+        # so that the prior never removes a voxel some view saw inside its image on the silhouette.
+        self._plain = VoxelCarver(lo, hi, pitch, dataclasses.replace(params, floor_prior=False), footprint) if params.floor_prior else None
+        self._evidence: List[Tuple[np.ndarray, np.ndarray]] = []
+        self._occupancy: Optional[Tuple[int, np.ndarray]] = None
 
     @classmethod
     def from_estimate(
@@ -297,19 +303,42 @@ class VoxelCarver:
 
     @property
     def occupancy(self) -> np.ndarray:
-        """Bool grid X x Y x Z: True where the voxel survives."""
+        """Bool grid X x Y x Z: True where the voxel survives (with the floor prior: see :meth:`_seen`)."""
         nx, ny, nz = self.shape
-        return self._counts[:nx, :ny, :nz] <= self.params.tolerance
+        occupied = self._counts[:nx, :ny, :nz] <= self.params.tolerance
+        if self._plain is None:
+            return occupied
+        if self._occupancy is None or self._occupancy[0] != self.views_added:
+            disputed = np.argwhere(self._plain.occupancy & ~occupied)  # removed by the prior alone
+            occupied[tuple(disputed[self._seen(disputed)].T)] = True
+            self._occupancy = (self.views_added, occupied)
+        return self._occupancy[1].copy()
+
+    def _seen(self, voxels: np.ndarray) -> np.ndarray:
+        """Which voxels (N x 3 indices) some view saw on its silhouette: the centre projects inside the
+        image onto the silhouette grown by one pixel (evidence of matter the prior must not override)."""
+        seen = np.zeros(len(voxels), dtype=bool)
+        centres = np.column_stack([self.origin + self.pitch * voxels, np.ones(len(voxels))])
+        for P, silhouette in self._evidence:
+            a, b, w = P @ centres.T
+            front = w > _MIN_DEPTH
+            u = np.floor(np.where(front, a / np.where(front, w, 1.0), -1.0) + 0.5).astype(np.int64)
+            v = np.floor(np.where(front, b / np.where(front, w, 1.0), -1.0) + 0.5).astype(np.int64)
+            inside = front & (u >= 0) & (u < silhouette.shape[1]) & (v >= 0) & (v < silhouette.shape[0])
+            seen[inside] |= silhouette[v[inside], u[inside]] > 0
+        return seen
 
     def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> int:
         """Carve with one silhouette; returns the number of voxels it removed."""
         silhouette = _dilated(_pinhole_mask(*_checked_view(mask, camera, T_WC)), self.params.dilation)
-        if self.params.floor_prior:
+        P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
+        if self._plain is not None:
+            self._plain.add_view(mask, camera, T_WC)
+            self._evidence.append((P, _dilated(silhouette, 1)))
             silhouette = np.vstack([silhouette, _floor_extension(silhouette, camera, np.asarray(T_WC, dtype=float))])
         x, y, w, h = cv2.boundingRect(silhouette)  # the summed-area table covers the silhouette's box only
         table = cv2.integral(silhouette[y : y + h, x : x + w], sdepth=cv2.CV_32S)
         image = np.array([camera.width, silhouette.shape[0], x, y], dtype=np.int64)
-        P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
         removed = _carve_view(
             self._counts, self._alive, self._offsets, self._dims, P, self.corner, self.pitch, table, image, self.params.tolerance
         )

@@ -336,8 +336,7 @@ def cut_views(shape, count: int = 18):
     return views
 
 
-@pytest.mark.parametrize("name", ["can", pytest.param("figure", marks=pytest.mark.xfail(
-    reason="open: the floor prior carves a true voxel of this scene (not yet explained)", strict=True))])
+@pytest.mark.parametrize("name", ["can", "figure"])
 def test_floor_prior_keeps_the_object_and_removes_the_unseen_skirt(name):
     shape, views = FLOOR_SHAPES[name], cut_views(FLOOR_SHAPES[name])
     assert all(mask[-1].any() for mask, _, _ in views), "the scene must cut the object at the image bottom"
