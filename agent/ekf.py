@@ -2,17 +2,13 @@
 
 State and camera (world frame W, SI units)::
 
-    x = (xo, yo, r),   cam = (cx, cy, psi)
+    x = (xo, yo, r),   cam = (cx, cy, psi)      cam: camera centre on the floor, optical-axis heading
 
-``cam`` is the camera centre projected on the floor and the heading of its optical axis
-(:func:`agent.camera.optical_axis_heading`) at the frame's capture time.
-
-Measurement (DESIGN.md slip 1 corrected; the paper's form is kept behind ``width_model``)::
+Measurement (docs/estimation.md; the paper's slip is kept behind ``width_model``)::
 
     dx = xo - cx,  dy = yo - cy,  d = sqrt(dx^2 + dy^2)
-    phi   = wrap(atan2(dy, dx) - psi)                     bearing of the centre
-    delta = 2 asin(r / d)           ("asin", exact: the angle between the two tangent planes)
-    delta = atan(r / d)             ("paper_atan", as printed; with real widths r comes out ~2x)
+    phi   = wrap(atan2(dy, dx) - psi)           bearing of the centre
+    delta = 2 asin(r / d)  ("asin")   or   atan(r / d)  ("paper_atan")
 
 Analytic Jacobian H = dh/dx (rows phi, delta)::
 
@@ -20,62 +16,49 @@ Analytic Jacobian H = dh/dx (rows phi, delta)::
     asin:  ddelta/d(xo, yo, r) = (-2 r dx, -2 r dy, 2 d^2) / (d^2 sqrt(d^2 - r^2))
     atan:  ddelta/d(xo, yo, r) = (-r dx / d, -r dy / d, d) / (d^2 + r^2)
 
-Prediction (the object is static; a random walk keeps the filter from overconfidence)::
+Prediction: x- = x, P- = P + Q dt, Q = diag(q_x^2, q_y^2, q_r^2) (the object is static).
 
-    x- = x,   P- = P + Q dt,   Q = diag(q_x^2, q_y^2, q_r^2)
+Two parametrisations of the same estimate, each a small immutable state class
+(docs/estimation.md, "Initialization"):
 
-Update (Joseph form, wrapped bearing innovation, chi-square gate on the NIS)::
+* :class:`InverseRangeState`, from a first view with a width, anchored at that camera a::
 
-    nu = (wrap(phi_m - phi(x-)), delta_m - delta(x-)),   S = H P- H^T + R,   R = diag(s_phi^2, s_delta^2)
-    NIS = nu^T S^-1 nu;  accept iff NIS <= chi2.ppf(gate_probability, dof)
-    K = P- H^T S^-1,   x+ = x- + K nu,   P+ = (I - K H) P- (I - K H)^T + K R K^T
+      y = (beta, rho, s):   x(y) = (ax + cos(beta) / rho, ay + sin(beta) / rho, s / rho)
+      h(y, cam) = h(u, origin),   u = (rho (ax - cx) + cos beta, rho (ay - cy) + sin beta, s)
 
-The update is iterated (IEKF, Gauss-Newton on the MAP cost; ``iterations`` = 1 is the plain EKF):
-relinearize at the iterate x_i, H_i = H(x_i), K_i = P- H_i^T (H_i P- H_i^T + R)^-1,
-x_i+1 = x- + K_i (z - h(x_i) - H_i (x- - x_i)), and P+ uses the last K_i, H_i. From the first
-views the range is as uncertain as the radius prior (100 %), and a single linearization there
-overshoots and can lock the gate out for good; a few iterations remove that (docs/estimation.md).
-The gate tests the minimum of the MAP cost, which is the NIS of the last linearization,
-r_i^T S_i^-1 r_i with r_i = z - h(x_i) - H_i (x- - x_i) and S_i = H_i P- H_i^T + R (the plain NIS
-when iterations = 1): with a wide prior, the NIS linearized at the prior mean is inflated by the
-curvature of h and would reject good first views of an object whose size differs from the prior.
+  (h is homogeneous of degree 0 in (xo - cx, yo - cy, r)); published as x(y), J P_y J^T, and
+  Q mapped by J^-1, J = dx/dy. Once std(rho) < inverse_range_switch * rho it becomes a
+* :class:`CartesianState` on (x, P) directly (also the start from a bearing-only first view).
 
-Without a width (``delta is None``) only the bearing row is used (dof 1). An update whose camera
-lies inside the estimated cylinder (d <= r), or whose inputs are not finite, is rejected with a
-reason; the state never becomes NaN. After an update the radius is projected onto r >= min_radius.
+One pure update for both, :func:`iterated_update` (IEKF, Gauss-Newton on the MAP cost)::
 
-Initialization from a first observation with a width, u = (phi, delta, r0), radius prior
-r0 ~ N(radius_prior, radius_prior_std^2). One view fixes the bearing and the angular size
-s = r / d = sin(delta/2) (asin; tan(delta) for paper_atan) but not the scale: the range is as
-uncertain as the radius (100 % with the default prior). Gaussian in (xo, yo, r) such a prior puts
-mass at r <= 0 and d <= 0, and the bearing parallax of the next views is hyperbolic in d: the
-MAP then lands near the camera with r -> 0 or 1 to 3 m off with a centimetre covariance, and the
-gate locks out (planner seeds 13, 23, 15, 35). So the filter starts in inverse-range coordinates
-anchored at the first camera a = (ax, ay) (Civera, Davison, Montiel 2008)::
+    H_i = H(m_i),  r_i = wrap(z - h(m_i)) - H_i (m- - m_i),  S_i = H_i P- H_i^T + R,
+    K_i = P- H_i^T S_i^-1,  m_i+1 = m- + K_i r_i,
+    NIS = r_i^T S_i^-1 r_i (last i),  P+ = (I - K H) P- (I - K H)^T + K R K^T  (Joseph)
 
-    y = (beta, rho, s):   x(y) = (ax + cos(beta) / rho, ay + sin(beta) / rho, s / rho)
-    y0 = (psi + phi, s / r0, s),   P_y0 = G diag(s_phi^2, s_delta^2, s_r0^2) G^T,   G = dy0/du
+accepted iff NIS <= chi2.ppf(gate_probability, dof).
 
-(the radius prior propagated to first order to the inverse radius). h is homogeneous of degree 0
-in (xo - cx, yo - cy, r), so with u = rho (xo - cx, yo - cy, r) = (rho (ax - cx) + cos beta,
-rho (ay - cy) + sin beta, s), h(y) = h(u seen from the origin): smooth through rho = 0, near-linear
-in rho, never r < 0. Updates run on y (the same iterated, gated update, valid iff rho > 0,
-0 < s < 1 and the camera outside); x, P are published as x(y), J P_y J^T (J = dx/dy), and Q is
-mapped by J^-1. Once std(rho) < inverse_range_switch * rho the filter continues on (x, P).
-Without a width, u = (phi, d, r0) with d ~ N(default_range, default_range_std^2), independent of
-r0, in (xo, yo, r) directly: x0 = (cx + d cos(psi + phi), cy + d sin(psi + phi), r0).
+View-dependent width (objects that are not cylinders: a box, a mug, a figure). The width noise is
+R_dd = sigma_delta^2 + c2 delta^2, with the relative width variability c2 estimated online from
+the width innovations nu_d of views whose bearing is consistent::
 
-Lost estimate: a valid view that is gated, or whose update would leave the state's domain, is
-inconsistent with the estimate; after ``reinitialize_after`` of them in a row the filter restarts
-from the current view (``stats.reinitialized``, and the result's reason says why).
+    v = (nu_d^2 - (H P H^T)_dd - sigma_delta^2) / delta^2,   w = delta^4 / (2 S_dd^2)  (1 / Var v under c2 = 0)
+    c2 = max(0, sum(l^k w v) / sum(l^k w) - k_sig / sqrt(sum(l^k w))),   l = 1 - 1 / width_shape_window
 
-Expected covariance for the planner (DESIGN.md item 7): K candidate camera sequences of D steps are
-rolled forward with synthesized noise-free observations at the predicted mean, so the innovation
-is zero, the mean stays and only the covariance evolves::
+(v clipped at width_shape_max^2): only a significant excess inflates it, so a cylinder keeps
+c2 = 0. A view whose width fails the gate but whose bearing passes updates the bearing alone.
+
+Restart only on proportionate evidence: a view whose bearing is inconsistent with the estimate
+starts (or extends) an alternative hypothesis filtered from those views alone; an alternative
+that gates one of them restarts from it. The estimate is replaced by the alternative when it has
+been consistent over n_restart views in a row, with n the views fused since the last start::
+
+    n_restart = clip(ceil(reinitialize_fraction * n), reinitialize_after, reinitialize_max)
+
+Expected covariance for the planner: K candidate camera sequences of D steps rolled forward with
+noise-free observations at the mean (zero innovation: only the covariance evolves)::
 
     P_k,j = P_k,j-1 + Q_step;   if visible[k, j]: P_k,j -= K S K^T with H(x, cam_k,j)
-
-(with the optimal gain this equals the filter's Joseph-form update; a test checks the two agree)
 
 in closed form on float64 scalars in a numba-compiled loop (:func:`rollout_covariance`).
 """
@@ -88,7 +71,7 @@ import math
 from dataclasses import dataclass, field
 from numbers import Real
 from pathlib import Path
-from typing import Literal, Optional, Sequence, Tuple, Union
+from typing import Callable, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from numba import njit
@@ -119,12 +102,21 @@ class EKFParams:
     min_radius: float = field(metadata=bounds(0.0, 10.0))  # m
     iterations: int = field(metadata=bounds(1, 50))  # Gauss-Newton steps per update; 1 = plain EKF
     inverse_range_switch: float = field(metadata=bounds(0.0, 1.0))  # rho std / rho below which x, P take over
-    reinitialize_after: int = field(metadata=bounds(1, 100000))  # consecutive gated views that restart the filter
+    reinitialize_after: int = field(metadata=bounds(1, 100000))  # fewest consistent-alternative views that restart
+    reinitialize_fraction: float = field(metadata=bounds(0.0, 10.0))  # restart views per view fused since the start
+    reinitialize_max: int = field(metadata=bounds(1, 100000))  # most views a restart ever needs
+    width_shape_window: float = field(metadata=bounds(1.0, 1e6))  # views: forgetting of the width-variability estimate
+    width_shape_significance: float = field(metadata=bounds(0.0, 100.0))  # sigmas of excess before inflating
+    width_shape_max: float = field(metadata=bounds(0.0, 10.0))  # largest relative width std c
     width_model: WidthModel
+
+    def __post_init__(self) -> None:
+        if self.reinitialize_max < self.reinitialize_after:
+            raise ValueError(f"reinitialize_max ({self.reinitialize_max}) must be >= reinitialize_after ({self.reinitialize_after})")
 
     @property
     def R(self) -> np.ndarray:
-        """Measurement noise covariance of (phi, delta)."""
+        """Nominal measurement noise covariance of (phi, delta)."""
         return np.diag([self.sigma_phi, self.sigma_delta]) ** 2
 
     def Q(self, dt: float) -> np.ndarray:
@@ -143,21 +135,21 @@ class UpdateResult:
 
     accepted: bool
     nis: Optional[float]
-    dof: int
+    dof: int  # components fused (1 when only the bearing was)
     innovation: Optional[np.ndarray]
-    reason: str  # "ok", or why the observation was rejected
+    reason: str  # "ok", or why the observation was rejected or only partly used
 
 
 @dataclass
 class FilterStats:
     """Counters the station logs: observations accepted, rejected by the gate, rejected as invalid,
-    rejections since the last accepted one, and restarts from a view after ``reinitialize_after``
-    consecutive gated views (the estimate was lost)."""
+    rejections since the last accepted one, widths gated while the bearing was fused, restarts."""
 
     accepted: int = 0
     gated: int = 0
     invalid: int = 0
     rejected_in_a_row: int = 0
+    width_gated: int = 0
     reinitialized: int = 0
 
     def as_dict(self) -> dict:
@@ -311,11 +303,195 @@ def _rollout_kernel(P0: np.ndarray, H: np.ndarray, Q: np.ndarray, R: np.ndarray)
     return out
 
 
-def _size_from_width(delta: float, width_model: WidthModel) -> Tuple[float, float]:
-    """Angular size s = r / d implied by the width delta, and ds/ddelta."""
-    if width_model == "asin":
-        return math.sin(0.5 * delta), 0.5 * math.cos(0.5 * delta)
-    return math.tan(delta), 1.0 / math.cos(delta) ** 2
+# The two parametrisations -----------------------------------------------------------------------
+
+
+def _outside(x: np.ndarray, cam: np.ndarray) -> bool:
+    return math.hypot(x[0] - cam[0], x[1] - cam[1]) > x[2]
+
+
+@dataclass(frozen=True)
+class CartesianState:
+    """Mean x = (xo, yo, r) and covariance P, the filter's state once the range is known."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+
+    def cartesian(self) -> Tuple[np.ndarray, np.ndarray]:
+        return self.mean, self.cov
+
+    def model(self, m: np.ndarray, cam: np.ndarray, dof: int, width_model: WidthModel) -> Tuple[np.ndarray, np.ndarray]:
+        """h(m, cam) and dh/dm, the first ``dof`` rows."""
+        return measure(m, cam, width_model)[:dof], measurement_jacobian(m, cam, width_model)[:dof]
+
+    def valid(self, m: np.ndarray, cam: np.ndarray) -> bool:
+        return _outside(m, cam)
+
+    def predicted(self, Q: np.ndarray) -> "CartesianState":
+        return CartesianState(self.mean, self.cov + Q)
+
+    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams) -> "CartesianState":
+        """The posterior, with the radius projected onto r >= min_radius."""
+        m = m.copy()
+        m[2] = max(m[2], params.min_radius)
+        return CartesianState(m, cov)
+
+
+@dataclass(frozen=True)
+class InverseRangeState:
+    """Mean y = (beta, rho, s) and covariance P_y anchored at the first camera a = (ax, ay)."""
+
+    anchor: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+
+    def jacobian(self) -> np.ndarray:
+        """J = d(xo, yo, r) / d(beta, rho, s) at the mean."""
+        beta, rho, size = self.mean
+        c, s = math.cos(beta), math.sin(beta)
+        return np.array([[-s / rho, -c / rho**2, 0.0], [c / rho, -s / rho**2, 0.0], [0.0, -size / rho**2, 1.0 / rho]])
+
+    def cartesian(self) -> Tuple[np.ndarray, np.ndarray]:
+        """x(y) and J P_y J^T (first order)."""
+        beta, rho, size = self.mean
+        x = np.array([self.anchor[0] + math.cos(beta) / rho, self.anchor[1] + math.sin(beta) / rho, size / rho])
+        J = self.jacobian()
+        return x, J @ self.cov @ J.T
+
+    def model(self, m: np.ndarray, cam: np.ndarray, dof: int, width_model: WidthModel) -> Tuple[np.ndarray, np.ndarray]:
+        """h and dh/dy through u = (rho (ax - cx) + cos beta, rho (ay - cy) + sin beta, s) seen from the origin."""
+        beta, rho, size = m
+        offset = self.anchor - cam[:2]
+        u = np.array([rho * offset[0] + math.cos(beta), rho * offset[1] + math.sin(beta), size])
+        du_dy = np.array([[-math.sin(beta), offset[0], 0.0], [math.cos(beta), offset[1], 0.0], [0.0, 0.0, 1.0]])
+        origin = np.array([0.0, 0.0, cam[2]])
+        return measure(u, origin, width_model)[:dof], measurement_jacobian(u, origin, width_model)[:dof] @ du_dy
+
+    def valid(self, m: np.ndarray, cam: np.ndarray) -> bool:
+        """In front of the anchor at a finite range, a size in (0, 1), the camera outside the object."""
+        beta, rho, size = m
+        return rho > 0.0 and 0.0 < size < 1.0 and math.hypot(*(rho * (self.anchor - cam[:2]) + (math.cos(beta), math.sin(beta)))) > size
+
+    def predicted(self, Q: np.ndarray) -> "InverseRangeState":
+        J_inv = np.linalg.inv(self.jacobian())
+        return InverseRangeState(self.anchor, self.mean, self.cov + J_inv @ Q @ J_inv.T)
+
+    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams) -> Union["InverseRangeState", CartesianState]:
+        """The posterior; on (x, P) once std(rho) < inverse_range_switch * rho."""
+        state = InverseRangeState(self.anchor, m, cov)
+        if math.sqrt(cov[1, 1]) < params.inverse_range_switch * m[1]:
+            return CartesianState(*state.cartesian())
+        return state
+
+
+State = Union[CartesianState, InverseRangeState]
+
+
+def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Optional[float]) -> State:
+    """The state from a first view (docs/estimation.md, "Initialization"); inputs already validated.
+
+    With a width: inverse range, y0 = (psi + phi, s / r0, s), P_y0 = G diag(s_phi^2, s_delta^2,
+    s_r0^2) G^T, G = dy0 / d(phi, delta, r0). Without: Cartesian, range ~ N(default_range, std^2).
+    """
+    cx, cy, psi = (float(v) for v in cam)
+    heading = psi + phi
+    p = params
+    if delta is None:
+        c, s = math.cos(heading), math.sin(heading)
+        rng = p.default_range
+        G = np.array([[-rng * s, c, 0.0], [rng * c, s, 0.0], [0.0, 0.0, 1.0]])  # d(xo, yo, r) / d(phi, range, r0)
+        x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
+        return CartesianState(x, G @ np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2 @ G.T)
+    if p.width_model == "asin":
+        size, d_size = math.sin(0.5 * delta), 0.5 * math.cos(0.5 * delta)
+    else:
+        size, d_size = math.tan(delta), 1.0 / math.cos(delta) ** 2
+    rho = size / p.radius_prior
+    G = np.array([[1.0, 0.0, 0.0], [0.0, d_size / p.radius_prior, -rho / p.radius_prior], [0.0, d_size, 0.0]])
+    P_y = G @ np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2 @ G.T
+    return InverseRangeState(np.array([cx, cy]), np.array([heading, rho, size]), P_y)
+
+
+# The update ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class IteratedStep:
+    """Result of :func:`iterated_update`: posterior mean and covariance, and the gated statistic."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    nis: float
+
+
+def _wrapped(nu: np.ndarray) -> np.ndarray:
+    nu = nu.copy()
+    nu[0] = wrap_angle(nu[0])
+    return nu
+
+
+def iterated_update(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    z: np.ndarray,
+    R: np.ndarray,
+    model: Callable[[np.ndarray], Tuple[np.ndarray, np.ndarray]],
+    valid: Callable[[np.ndarray], bool],
+    iterations: int,
+) -> Optional[IteratedStep]:
+    """Iterated EKF update of (mean, cov) by z (bearing first, wrapped) with noise R (module docstring).
+
+    ``model(m)`` gives (h(m), dh/dm); an iterate that is not finite or not ``valid`` stops the
+    iteration at the last good one. None when even the first is not, or the posterior is degenerate.
+    """
+    step = None
+    m_lin = mean
+    for _ in range(iterations):
+        h, H = model(m_lin)
+        residual = _wrapped(z - h) - H @ (mean - m_lin)
+        S_inv = _inverse_spd(H @ cov @ H.T + R)
+        gain = cov @ H.T @ S_inv
+        m_next = mean + gain @ residual
+        if not (np.all(np.isfinite(m_next)) and valid(m_next)):
+            break
+        step = (m_next, H, gain, float(residual @ S_inv @ residual))
+        if np.max(np.abs(m_next - m_lin)) < 1e-9:  # converged
+            break
+        m_lin = m_next
+    if step is None:
+        return None
+    m, H, gain, nis = step
+    A = np.eye(len(mean)) - gain @ H
+    post = A @ cov @ A.T + gain @ R @ gain.T
+    if not (math.isfinite(nis) and np.all(np.isfinite(post))):
+        return None
+    return IteratedStep(m, 0.5 * (post + post.T), nis)
+
+
+@dataclass
+class WidthVariability:
+    """Online estimate of c2, the relative variance of the apparent width that the cylinder does
+    not explain (module docstring): forgetting sums of w and w v."""
+
+    params: EKFParams
+    weight: float = 0.0
+    weighted: float = 0.0
+
+    @property
+    def c2(self) -> float:
+        if self.weight <= 0.0:
+            return 0.0
+        return max(0.0, self.weighted / self.weight - self.params.width_shape_significance / math.sqrt(self.weight))
+
+    def add(self, nu_width: float, predicted_var: float, delta: float) -> None:
+        """One width innovation nu_width with its predicted variance (H P H^T)_dd + sigma_delta^2."""
+        if delta <= 0.0 or predicted_var <= 0.0:
+            return
+        v = min((nu_width**2 - predicted_var) / delta**2, self.params.width_shape_max**2)
+        w = delta**4 / (2.0 * predicted_var**2)
+        keep = 1.0 - 1.0 / self.params.width_shape_window
+        self.weight = keep * self.weight + w
+        self.weighted = keep * self.weighted + w * v
 
 
 class ObjectEKF:
@@ -323,34 +499,41 @@ class ObjectEKF:
 
     def __init__(self, params: EKFParams):
         self.params = params
-        self.x: Optional[np.ndarray] = None
-        self.P: Optional[np.ndarray] = None
         self.stats = FilterStats()
-        # Inverse-range state (beta, rho, s) and its covariance while the range is poorly known,
-        # anchored at the first camera; None once the filter runs on x, P directly.
-        self._anchor: Optional[np.ndarray] = None
-        self._y: Optional[np.ndarray] = None
-        self._Py: Optional[np.ndarray] = None
-        self._lost_in_a_row = 0
-        self._R = params.R
+        self.width = WidthVariability(params)
+        self._state: Optional[State] = None
+        self._alternative: Optional[State] = None  # filtered from the current streak of inconsistent views
+        self._streak = 0  # views in a row the alternative explains and the estimate does not
+        self._fused = 0  # views fused since the last (re)start
         self._gate = {dof: float(chi2.ppf(params.gate_probability, dof)) for dof in (1, 2)}
         self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
 
     @property
     def initialized(self) -> bool:
-        return self.x is not None
+        return self._state is not None
+
+    @property
+    def x(self) -> Optional[np.ndarray]:
+        return None if self._state is None else self._state.cartesian()[0]
+
+    @property
+    def P(self) -> Optional[np.ndarray]:
+        return None if self._state is None else self._state.cartesian()[1]
+
+    @property
+    def restart_views(self) -> int:
+        """Consecutive consistent-alternative views that would restart the estimate now."""
+        p = self.params
+        return int(min(max(math.ceil(p.reinitialize_fraction * self._fused), p.reinitialize_after), p.reinitialize_max))
 
     def gate(self, dof: int) -> float:
         """NIS threshold for a measurement with ``dof`` components."""
         return self._gate[dof]
 
     def copy(self) -> "ObjectEKF":
-        other = copy.copy(self)  # shares the immutable params, R and gate thresholds
-        other.x = None if self.x is None else self.x.copy()
-        other.P = None if self.P is None else self.P.copy()
-        other._y = None if self._y is None else self._y.copy()
-        other._Py = None if self._Py is None else self._Py.copy()
+        other = copy.copy(self)  # the states are immutable; params, gate thresholds shared
         other.stats = dataclasses.replace(self.stats)
+        other.width = dataclasses.replace(self.width)
         return other
 
     def snapshot(self) -> dict:
@@ -380,32 +563,13 @@ class ObjectEKF:
         return UpdateResult(False, None, dof, None, reason)
 
     def initialize(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
-        """Set the estimate from a first observation (see the module docstring); replaces any previous one."""
-        p = self.params
+        """Set the estimate from a first observation (:func:`initial_state`); replaces any previous one."""
         dof = 1 if delta is None else 2
         reason = self._invalid(cam, phi, delta)
         if reason is not None:
             return self._reject_invalid(reason, dof)
-        cx, cy, psi = (float(v) for v in cam)
-        heading = psi + phi
-        self._anchor = self._y = self._Py = None
-        self._lost_in_a_row = 0
-        if delta is None:
-            c, s = math.cos(heading), math.sin(heading)
-            rng = p.default_range
-            # G = d(xo, yo, r) / d(phi, range, r0)
-            G = np.array([[-rng * s, c, 0.0], [rng * c, s, 0.0], [0.0, 0.0, 1.0]])
-            self.x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
-            self.P = G @ np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2 @ G.T
-        else:
-            size, d_size = _size_from_width(delta, p.width_model)
-            rho = size / p.radius_prior
-            # G = d(beta, rho, s) / d(phi, delta, r0)
-            G = np.array([[1.0, 0.0, 0.0], [0.0, d_size / p.radius_prior, -rho / p.radius_prior], [0.0, d_size, 0.0]])
-            self._anchor = np.array([cx, cy])
-            self._y = np.array([heading, rho, size])
-            self._Py = G @ np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2 @ G.T
-            self._publish()
+        self._state = initial_state(self.params, cam, phi, delta)
+        self._alternative, self._streak, self._fused = None, 0, 1
         self.stats.accepted += 1
         return UpdateResult(True, None, dof, None, "initialized")
 
@@ -413,132 +577,82 @@ class ObjectEKF:
         """Add the process noise of ``dt`` seconds (the object is static)."""
         if not (math.isfinite(dt) and dt >= 0.0):
             raise ValueError(f"predict: dt must be finite and >= 0 s, got {dt!r}")
-        if self._y is not None:
-            J_inv = np.linalg.inv(self._cartesian_jacobian(self._y))
-            self._Py = self._Py + J_inv @ self.params.Q(dt) @ J_inv.T
-            self._publish()
-        elif self.P is not None:
-            self.P = self.P + self.params.Q(dt)
+        if self._state is not None:
+            self._state = self._state.predicted(self.params.Q(dt))
+
+    def _fuse(self, state: State, cam: np.ndarray, z: np.ndarray, R: np.ndarray) -> Optional[IteratedStep]:
+        dof = len(z)
+        width_model = self.params.width_model
+        return iterated_update(
+            state.mean, state.cov, z, R, lambda m: state.model(m, cam, dof, width_model), lambda m: state.valid(m, cam), self.params.iterations
+        )
 
     def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
         """Fuse one observation (bearing-only when ``delta`` is None); gated, never leaves a NaN."""
         dof = 1 if delta is None else 2
-        if self.x is None or self.P is None:
+        if self._state is None:
             return self._reject_invalid("filter not initialized", dof)
         reason = self._invalid(cam, phi, delta)
         if reason is not None:
             return self._reject_invalid(reason, dof)
         cam = np.asarray(cam, dtype=float)
-        if not self._outside(self.x, cam):
+        state = self._state
+        if not _outside(self.x, cam):
             return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
-        R = self._R[:dof, :dof]
-        inverse_range = self._y is not None
-        mean, cov = (self._y, self._Py) if inverse_range else (self.x, self.P)
-        model = self._inverse_range_model if inverse_range else self._cartesian_model
-        h0, _ = model(mean, cam, dof)
-        nu = self._wrapped(z - h0)
-        # Iterated EKF: Gauss-Newton on the MAP cost; one iteration is the plain EKF update.
-        step = None
-        m_lin, residual = mean, nu
-        for _ in range(self.params.iterations):
-            h, H = model(m_lin, cam, dof)
-            if m_lin is not mean:
-                residual = self._wrapped(z - h) - H @ (mean - m_lin)
-            S_inv = _inverse_spd(H @ cov @ H.T + R)
-            gain = cov @ H.T @ S_inv
-            m_next = mean + gain @ residual
-            if not (np.all(np.isfinite(m_next)) and self._valid(m_next, cam, inverse_range)):
-                break
-            step = (m_next, H, S_inv, residual, gain)
-            if np.max(np.abs(m_next - m_lin)) < 1e-9:  # converged
-                break
-            m_lin = m_next
+        h, H = state.model(state.mean, cam, dof, self.params.width_model)
+        nu = _wrapped(z - h)
+        predicted = H @ state.cov @ H.T + self.params.R[:dof, :dof]
+        bearing_ok = nu[0] ** 2 <= self._gate[1] * predicted[0, 0]
+        R = self.params.R[:dof, :dof].copy()
+        if dof == 2:
+            if bearing_ok:
+                self.width.add(float(nu[1]), float(predicted[1, 1]), float(h[1]))
+            R[1, 1] += self.width.c2 * h[1] ** 2
+        step = self._fuse(state, cam, z, R)
+        note = "ok"
+        if dof == 2 and (step is None or step.nis > self._gate[2]) and bearing_ok:
+            step = self._fuse(state, cam, z[:1], R[:1, :1])  # the width disagrees, the bearing does not
+            note = f"width inconsistent with the estimate (innovation {nu[1]:.4f} rad): bearing only"
+            dof = 1
         if step is None:
-            return self._reject_inconsistent(cam, phi, delta, None, nu, "update would put the camera inside the object or is degenerate")
-        m, H, S_inv, residual, gain = step
-        nis = float(residual @ S_inv @ residual)  # = min MAP cost; the plain NIS when iterations = 1
-        if not math.isfinite(nis):
-            return self._reject_invalid("innovation covariance is degenerate", dof)
-        if nis > self._gate[dof]:
-            return self._reject_inconsistent(cam, phi, delta, nis, nu, f"NIS {nis:.1f} above gate {self._gate[dof]:.1f}")
-        self._lost_in_a_row = 0
-        A = np.eye(3) - gain @ H
-        cov = A @ cov @ A.T + gain @ R @ gain.T
-        if not np.all(np.isfinite(cov)):
-            return self._reject_invalid("update produced a non-finite covariance", dof)
-        cov = 0.5 * (cov + cov.T)
-        if inverse_range:
-            self._y, self._Py = m, cov
-            self._publish()
-            if math.sqrt(cov[1, 1]) < self.params.inverse_range_switch * m[1]:
-                self._anchor = self._y = self._Py = None  # the range is known: continue on x, P
-        else:
-            self.x, self.P = m.copy(), cov
-            self.x[2] = max(self.x[2], self.params.min_radius)
+            return self._inconsistent(cam, z, R, None, nu, "update would put the camera inside the object or is degenerate")
+        if step.nis > self._gate[dof]:
+            return self._inconsistent(cam, z, R, step.nis, nu, f"NIS {step.nis:.1f} above gate {self._gate[dof]:.1f}")
+        self._state = state.updated(step.mean, step.cov, self.params)
+        self._alternative, self._streak = None, 0
+        self._fused += 1
         self.stats.accepted += 1
+        self.stats.width_gated += note != "ok"
         self.stats.rejected_in_a_row = 0
-        return UpdateResult(True, nis, dof, nu, "ok")
+        return UpdateResult(True, step.nis, dof, nu, note)
 
-    def _reject_inconsistent(
-        self, cam: np.ndarray, phi: float, delta: Optional[float], nis: Optional[float], nu: np.ndarray, reason: str
+    def _inconsistent(
+        self, cam: np.ndarray, z: np.ndarray, R: np.ndarray, nis: Optional[float], nu: np.ndarray, reason: str
     ) -> UpdateResult:
-        """A valid view that contradicts the estimate (gated, or its update leaves the state's domain);
-        after ``reinitialize_after`` of them in a row the estimate is lost: restart from this view."""
+        """A valid view the estimate cannot explain: it extends the alternative hypothesis (or starts
+        a new one if the alternative cannot explain it either); once the alternative has explained
+        ``restart_views`` in a row, it replaces the estimate."""
         if nis is None:
             self.stats.invalid += 1
         else:
             self.stats.gated += 1
-        self._lost_in_a_row += 1
-        if self._lost_in_a_row < self.params.reinitialize_after:
+        step = None if self._alternative is None else self._fuse(self._alternative, cam, z, R)
+        if step is not None and step.nis <= self._gate[len(z)]:
+            self._alternative = self._alternative.updated(step.mean, step.cov, self.params)
+            self._streak += 1
+        else:
+            self._alternative = initial_state(self.params, cam, float(z[0]), float(z[1]) if len(z) == 2 else None)
+            self._streak = 1
+        needed = self.restart_views
+        if self._streak < needed:
             self.stats.rejected_in_a_row += 1
             return UpdateResult(False, nis, nu.size, nu if nis is not None else None, reason)
-        streak = self._lost_in_a_row
-        self.initialize(cam, phi, delta)
+        self._state, self._alternative = self._alternative, None
+        self._fused, self._streak = self._streak, 0
         self.stats.reinitialized += 1
         self.stats.rejected_in_a_row = 0
-        return UpdateResult(True, nis, nu.size, nu, f"re-initialized after {streak} consecutive views inconsistent with the estimate ({reason})")
-
-    def _publish(self) -> None:
-        """x, P of the inverse-range state, to first order: x = x(y), P = J P_y J^T."""
-        beta, rho, size = self._y
-        self.x = np.array([self._anchor[0] + math.cos(beta) / rho, self._anchor[1] + math.sin(beta) / rho, size / rho])
-        J = self._cartesian_jacobian(self._y)
-        self.P = J @ self._Py @ J.T
-
-    @staticmethod
-    def _cartesian_jacobian(y: np.ndarray) -> np.ndarray:
-        """J = d(xo, yo, r) / d(beta, rho, s)."""
-        beta, rho, size = y
-        c, s = math.cos(beta), math.sin(beta)
-        return np.array([[-s / rho, -c / rho**2, 0.0], [c / rho, -s / rho**2, 0.0], [0.0, -size / rho**2, 1.0 / rho]])
-
-    def _cartesian_model(self, x: np.ndarray, cam: np.ndarray, dof: int) -> Tuple[np.ndarray, np.ndarray]:
-        p = self.params
-        return measure(x, cam, p.width_model)[:dof], measurement_jacobian(x, cam, p.width_model)[:dof]
-
-    def _inverse_range_model(self, y: np.ndarray, cam: np.ndarray, dof: int) -> Tuple[np.ndarray, np.ndarray]:
-        """h and dh/dy through the scaled state u = rho (xo - cx, yo - cy, r) seen from the origin (h is
-        homogeneous of degree 0): u = (rho (ax - cx) + cos beta, rho (ay - cy) + sin beta, s)."""
-        beta, rho, size = y
-        offset = self._anchor - cam[:2]
-        u = np.array([rho * offset[0] + math.cos(beta), rho * offset[1] + math.sin(beta), size])
-        du_dy = np.array([[-math.sin(beta), offset[0], 0.0], [math.cos(beta), offset[1], 0.0], [0.0, 0.0, 1.0]])
-        origin = np.array([0.0, 0.0, cam[2]])
-        h, H = self._cartesian_model(u, origin, dof)
-        return h, H @ du_dy
-
-    def _valid(self, m: np.ndarray, cam: np.ndarray, inverse_range: bool) -> bool:
-        if not inverse_range:
-            return self._outside(m, cam)
-        # In front of the anchor at a finite range, and the camera outside the object.
-        return m[1] > 0.0 and 0.0 < m[2] < 1.0 and math.hypot(*(m[1] * (self._anchor - cam[:2]) + (math.cos(m[0]), math.sin(m[0])))) > m[2]
-
-    def _outside(self, x: np.ndarray, cam: np.ndarray) -> bool:
-        return math.hypot(x[0] - cam[0], x[1] - cam[1]) > x[2]
-
-    @staticmethod
-    def _wrapped(nu: np.ndarray) -> np.ndarray:
-        nu = nu.copy()
-        nu[0] = wrap_angle(nu[0])
-        return nu
+        return UpdateResult(
+            True, nis, nu.size, nu,
+            f"re-initialized after {needed} consecutive views inconsistent with the estimate and consistent with each other ({reason})",
+        )

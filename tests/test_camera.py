@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.camera import CameraModel, bearing_width_from_pixels, optical_axis_heading
+from agent.camera import CameraModel, optical_axis_heading
 from nao_core.geometry import (
     camera_in_world,
     invert,
@@ -18,6 +18,7 @@ from nao_core.geometry import (
     wrap_angle,
 )
 from nao_core.robot_model import R_NAO_OPTICAL, load_robot_model, nao_to_optical
+from tests.tangents import bearing_width_from_pixels
 
 ROBOT = load_robot_model()
 

@@ -12,7 +12,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from agent.camera import CameraModel, optical_axis_heading, ray_azimuths
+from agent.camera import CameraModel, optical_axis_heading
 from agent.ekf import (
     NOMINAL_R,
     ObjectEKF,
@@ -24,25 +24,13 @@ from agent.ekf import (
 from nao_core.config import ConfigError
 from nao_core.geometry import camera_in_world, wrap_angle
 from nao_core.robot_model import load_robot_model
+from tests.tangents import bearing_width_from_pixels
 from tools.demo_estimation import circling_cameras, circling_runs, simulate
 
 PARAMS = load_ekf_params()
 coord = st.floats(-3.0, 3.0)
 
 
-
-def bearing_width_from_pixels(
-    camera: CameraModel, left_px: np.ndarray, right_px: np.ndarray, T_WC: np.ndarray
-) -> tuple[float, float, float]:
-    """Centre azimuth (world), bearing relative to the optical-axis heading, and apparent width.
-
-    ``left_px``/``right_px`` are the silhouette's extreme left and right pixels (u, v). Returns
-    (azimuth_W, phi, delta) with phi = wrap(azimuth_W - psi) and delta = a_l - a_r (wrapped).
-    """
-    a_l, a_r = ray_azimuths(camera.pixels_to_rays(np.vstack([left_px, right_px])), T_WC)
-    delta = wrap_angle(a_l - a_r)
-    azimuth = wrap_angle(a_r + 0.5 * delta)
-    return azimuth, wrap_angle(azimuth - optical_axis_heading(T_WC)), delta
 
 
 
@@ -264,7 +252,7 @@ def test_gate_counts_rejections():
     ekf.initialize((0.0, 0.0, 0.0), 0.0, 2 * math.asin(0.1 / 1.0))
     result = ekf.update((0.0, 0.0, 0.0), math.radians(10.0), 2 * math.asin(0.1 / 1.0))
     assert not result.accepted and result.nis > ekf.gate(2) and ekf.stats.gated == 1
-    assert ekf.snapshot()["stats"] == {"accepted": 1, "gated": 1, "invalid": 0, "rejected_in_a_row": 1, "reinitialized": 0}
+    assert ekf.snapshot()["stats"] == {"accepted": 1, "gated": 1, "invalid": 0, "rejected_in_a_row": 1, "width_gated": 0, "reinitialized": 0}
 
 
 def test_a_lost_estimate_restarts_from_the_view_after_consecutive_gated_views():
