@@ -28,7 +28,7 @@ the half-way crossing; it needs no threshold tuning. Rows with too little contra
 (|O - B| < ``edge_min_contrast``), too short a run or a reference outside the image keep the
 mask's outer pixel edge u0 - 1/2.
 
-Measurement (DESIGN.md section 2). Every row's left and right outline edge (u, v) is
+Measurement (docs/perception.md). Every row's left and right outline edge (u, v) is
 back-projected (distortion removed), rotated into W with T_WC and reduced to a horizontal azimuth
 a(v). For a vertical cylinder the left/right outline rows lie in the two vertical tangent planes, so
 
@@ -38,8 +38,13 @@ a(v). For a vertical cylinder the left/right outline rows lie in the two vertica
 averages the rows' noise (and, on the binary fallback, the +-1/2 pixel quantization along a slanted
 outline, where the extreme row alone is biased outwards by about half a pixel a side), and
 delta = a_l - a_r, azimuth_W = (a_l + a_r) / 2, phi = wrap(azimuth_W - psi(T_WC)).
-A silhouette within ``border_margin`` of the left or right border is cut by the image: it gives
-a bearing (that of the visible part) and no width, never a wrong one.
+A silhouette within ``border_margin`` of any image border is cut (``ObjectMeasurement.cut`` names
+the borders) and gives no width, never a wrong one: the visible part of a box, a mug or a figure is
+narrower or wider than its whole, and a sliver of a can leaving the image is as wide as the rows
+that remain. Cut at the top or bottom it still gives the bearing (the tangent-plane bisector of the
+visible rows); cut at a side the visible part's bisector is pulled towards the image by up to half
+the width, so the bearing is reported for display but flagged unusable (``bearing_valid``).
+The silhouette's top and bottom rows (``top_row``, ``bottom_row``) give its vertical extent.
 """
 
 from __future__ import annotations
@@ -57,6 +62,7 @@ from nao_core.geometry import wrap_angle
 
 MIN_IMAGE_SIDE = 16  # px: anything smaller is not a camera frame
 COARSE_WIDTH = 160  # px: the object's colour is first looked for on the frame reduced to this width
+BORDERS = ("left", "right", "top", "bottom")
 
 
 class ImageError(ValueError):
@@ -83,7 +89,7 @@ class PerceptionParams:
     min_area: int = field(metadata=bounds(1, 10**7))  # px, smallest object silhouette
     landmark_min_area: int = field(metadata=bounds(1, 10**7))  # px, smallest colour-landmark blob
     component: Literal["largest", "nearest"]  # "nearest" needs a predicted pixel, else largest
-    border_margin: int = field(metadata=bounds(0, 100))  # px from the left/right border that cut the width
+    border_margin: int = field(metadata=bounds(0, 100))  # px from a border within which the silhouette is cut by it
     edge_band: float = field(metadata=bounds(0.0, 10.0))  # tangent-row band, in pixels' angles
     edge_window: int = field(metadata=bounds(0, 10))  # px: sub-pixel edge references this far out/in (0 = mask edge)
     edge_min_contrast: float = field(metadata=bounds(0.0, 442.0))  # BGR distance object-background for a sub-pixel edge
@@ -106,27 +112,47 @@ class Silhouette:
     centroid: Tuple[float, float]  # (u, v)
     left_px: Tuple[int, int]  # leftmost outline pixel (u, v) (median row among ties)
     right_px: Tuple[int, int]  # rightmost outline pixel (u, v)
-    touches_left: bool  # within border_margin of the left border: the width is not observable
+    touches_left: bool  # within border_margin of the left border: cut by it
     touches_right: bool
-    touches_top: bool  # informative only: a cut top or bottom does not bias a cylinder's width
+    touches_top: bool
     touches_bottom: bool
     left_edge: np.ndarray  # N x 2 sub-pixel outline (u, v): each row's left edge
     right_edge: np.ndarray  # N x 2, each row's right edge
 
     @property
+    def cut(self) -> Tuple[str, ...]:
+        """The image borders that cut the silhouette, of "left", "right", "top", "bottom"."""
+        flags = (self.touches_left, self.touches_right, self.touches_top, self.touches_bottom)
+        return tuple(name for name, flag in zip(BORDERS, flags) if flag)
+
+    @property
+    def side_cut(self) -> bool:
+        """Cut by the left or right border: neither the width nor the bearing is observable."""
+        return self.touches_left or self.touches_right
+
+    @property
     def width_valid(self) -> bool:
-        return not (self.touches_left or self.touches_right)
+        """Not cut by any border: the whole silhouette, so its width is the object's."""
+        return not self.cut
 
 
 @dataclass(frozen=True)
 class ObjectMeasurement:
-    """Bearing and apparent width of the object in one frame (DESIGN.md section 2)."""
+    """Bearing and apparent width of the object in one frame (docs/perception.md, "Measurement")."""
 
     azimuth: float  # world azimuth of the centre, rad
-    phi: float  # bearing relative to the optical-axis heading, rad
-    delta: Optional[float]  # apparent width, rad; None when the silhouette is cut by a side border
+    phi: float  # bearing relative to the optical-axis heading, rad (of the visible part when side-cut)
+    delta: Optional[float]  # apparent width, rad; None when the silhouette is cut by any border
     a_left: float  # world azimuths of the two tangent planes, rad
     a_right: float
+    cut: Tuple[str, ...]  # the image borders that cut the silhouette ("left", "right", "top", "bottom")
+    top_row: int  # the silhouette's topmost and bottommost image rows v, px
+    bottom_row: int
+
+    @property
+    def bearing_valid(self) -> bool:
+        """False when a side border cuts the silhouette: phi is then that of the visible part only."""
+        return "left" not in self.cut and "right" not in self.cut
 
 
 def check_image(image: object, size: Optional[Tuple[int, int]] = None) -> np.ndarray:
@@ -325,7 +351,7 @@ def measure_object(
 ) -> Optional[ObjectMeasurement]:
     """Centre azimuth, bearing phi and apparent width delta of a silhouette seen from T_WC.
 
-    None when the silhouette has no outline pixels; ``delta`` is None when it is cut by a side border.
+    None when the silhouette has no outline pixels; ``delta`` is None when it is cut by any border.
     """
     if silhouette.area <= 0 or len(silhouette.left_edge) == 0:
         return None
@@ -342,7 +368,9 @@ def measure_object(
     azimuth = wrap_angle(0.5 * (a_l + a_r))
     phi = wrap_angle(azimuth - optical_axis_heading(T_WC))
     delta = a_l - a_r if silhouette.width_valid else None
-    return ObjectMeasurement(azimuth=azimuth, phi=phi, delta=delta, a_left=wrap_angle(a_l), a_right=wrap_angle(a_r))
+    _, y, _, h = silhouette.bbox
+    return ObjectMeasurement(azimuth=azimuth, phi=phi, delta=delta, a_left=wrap_angle(a_l), a_right=wrap_angle(a_r),
+                             cut=silhouette.cut, top_row=y, bottom_row=y + h - 1)
 
 
 def object_pixel_direction(camera: CameraModel, uv: Tuple[float, float]) -> Tuple[float, float]:

@@ -272,6 +272,48 @@ def test_a_lost_estimate_restarts_from_the_view_after_consecutive_gated_views():
     np.testing.assert_allclose(ekf.x, truth, atol=1e-3)
 
 
+def test_five_bad_views_do_not_erase_an_estimate_built_from_hundreds():
+    """Issue 12: 300 views of the object, then views of a phantom 2 m away (a cut silhouette read as
+    a far object) that agree with each other. Five, or any streak shorter than
+    reinitialize_fraction x 300, leave the estimate untouched; a longer one (the object really
+    moved) restarts it from the phantom's views."""
+    truth, phantom = np.array([1.0, 0.0, 0.05]), np.array([3.0, 1.5, 0.05])
+    cams = circling_cameras(truth[:2], 0.6, 300)
+    ekf = ObjectEKF(PARAMS)
+    z = measure(truth, cams)
+    ekf.initialize(cams[0], *z[0])
+    assert all(ekf.update(cam, *obs).accepted for cam, obs in zip(cams[1:], z[1:]))
+    built = ekf.copy()
+    needed = ekf.restart_views
+    assert needed == math.ceil(PARAMS.reinitialize_fraction * 300) > 5  # proportionate to the 300 views fused
+    bad_cams = circling_cameras(truth[:2], 0.6, needed, start=1.0)
+    bad = [ekf.update(cam, *measure(phantom, cam)) for cam in bad_cams[:needed - 1]]
+    assert not any(r.accepted for r in bad) and ekf.stats.reinitialized == 0
+    np.testing.assert_array_equal(ekf.x, built.x)
+    assert ekf.update(cams[7], *z[7]).accepted  # a good view ends the streak and drops the alternative
+    assert ekf.restart_views == math.ceil(PARAMS.reinitialize_fraction * 301)
+    for cam in circling_cameras(truth[:2], 0.6, ekf.restart_views, start=1.0):
+        result = ekf.update(cam, *measure(phantom, cam))
+    assert result.accepted and result.reason.startswith("re-initialized after") and ekf.stats.reinitialized == 1
+    assert np.hypot(*(ekf.x[:2] - phantom[:2])) < np.hypot(*(built.x[:2] - phantom[:2]))  # now on the phantom's side
+
+
+def test_inconsistent_views_that_disagree_with_each_other_never_restart():
+    """Random gross outliers (no consistent alternative) never replace an estimate, however many."""
+    truth = np.array([1.0, 0.0, 0.05])
+    cams = circling_cameras(truth[:2], 0.6, 40)
+    ekf = ObjectEKF(PARAMS)
+    z = measure(truth, cams)
+    ekf.initialize(cams[0], *z[0])
+    for cam, obs in zip(cams[1:], z[1:]):
+        ekf.update(cam, *obs)
+    rng = np.random.default_rng(1)
+    for cam in circling_cameras(truth[:2], 0.6, 60):
+        ekf.update(cam, rng.uniform(-0.5, 0.5), rng.uniform(0.05, 0.4))
+    assert ekf.stats.reinitialized == 0
+    np.testing.assert_allclose(ekf.x, truth, atol=2e-3)
+
+
 @pytest.mark.parametrize("seed, omnidirectional", [(13, False), (23, False), (15, True), (35, True)])
 def test_planner_seeds_that_used_to_diverge_converge(seed, omnidirectional):
     """Regression (nao_sim.sim2d): from these starts the first update after a one-view initialization used

@@ -176,8 +176,39 @@ def test_cut_by_a_side_border_gives_a_bearing_and_no_width(params, robot):
         silhouette = extract_silhouette(draw_cylinder(camera, T_WC, centre, 0.06, 0.2), params)
         assert silhouette.touches_right == (yaw > 0) and silhouette.touches_left == (yaw < 0)
         m = measure_object(silhouette, camera, T_WC, params)
-        assert m.delta is None and math.isfinite(m.phi)
+        assert m.delta is None and math.isfinite(m.phi) and not m.bearing_valid
         assert np.sign(m.phi) == np.sign(true_bearing_width(T_WC, centre, 0.06)[0])
+
+
+@pytest.mark.parametrize("border, yaw_offset, pitch_offset", [
+    (None, 0.0, 0.0), ("bottom", 0.0, -0.42), ("top", 0.0, 0.42), ("left", -0.55, 0.0), ("right", 0.55, 0.0)])
+def test_rendered_silhouettes_cut_by_any_border_give_no_width(params, robot, border, yaw_offset, pitch_offset):
+    """Issue 12: simulator frames of the can 0.8 m away with the head turned off it (offsets beyond
+    half the field of view minus half the can's angular size) so that one border cuts it. Cut at
+    the top or bottom: the bearing of the visible rows is still the cylinder's (its tangent planes
+    are vertical), no width. Cut at a side: neither. Uncut: both, and the top and bottom rows are
+    those of the projected can (within the renderer's anti-aliasing, 1.5 px)."""
+    world = SimWorld("can", robot, "vga", seed=2)
+    camera = camera_of(robot, "vga")
+    centre, radius, height = np.array(world.scenario.position), world.scenario.radius, world.scenario.height
+    pose = (centre[0] - 0.8, centre[1] + 0.02, 0.05)  # far enough for the pitch limits to aim at mid-height
+    yaw, pitch = robot.look_at(pose, (*centre, 0.5 * height))
+    T_WC = planar_transform(*pose) @ robot.camera_in_robot(yaw + yaw_offset, pitch + pitch_offset)  # the renderer takes any pose
+    m = measure_object(extract_silhouette(world.renderer.render(T_WC, 1), params), camera, T_WC, params)
+    assert m.cut == (() if border is None else (border,))
+    assert (m.delta is None) == (border is not None)
+    assert m.bearing_valid == (border not in ("left", "right"))
+    phi, delta = true_bearing_width(T_WC, centre, radius)
+    if m.bearing_valid:
+        assert abs(m.phi - phi) < math.radians(0.1)
+    if border is None:
+        assert abs(m.delta - delta) < 0.5 / camera.K[0, 0]
+        uv, _ = camera.project_world(world.scenario.world_points(), T_WC)
+        assert abs(m.top_row - uv[:, 1].min()) < 1.5 and abs(m.bottom_row - uv[:, 1].max()) < 1.5
+    elif border == "top":
+        assert m.top_row == 0
+    elif border == "bottom":
+        assert m.bottom_row == camera.height - 1
 
 
 def test_red_wraps_through_hue_zero_and_morphology_removes_speckle(params):
