@@ -4,20 +4,28 @@ Phases and transitions (t is the caller's clock, s; the first ``tick`` starts th
 
     INIT    --head centred (|yaw|, |pitch - init_pitch| <= head_tolerance) or init_timeout--> SEARCH
     SEARCH  --a frame saw the object while the robot is localized--> ACTIVE
+            --a frame saw the object, no landmark fix yet--> LOCALIZE
             head scan: one ``search_dwell`` per yaw of ``search_head_yaws``, then turn in place at
             ``search_turn_rate`` for at most search_max_turns * 2 pi / search_turn_rate s
+    LOCALIZE --a landmark fix--> ACTIVE   (the robot stands; the object is tracked in the odometry
+            frame and the caller's head alternates between it and the landmarks)
+    INIT, SEARCH, LOCALIZE --no landmark fix for no_fix_timeout s since the start--> STOPPING
+            (outcome 'landmarks_lost', the reason says how many landmarks frames showed)
     ACTIVE  --on_goal (coverage and uncertainty reached)--> DONE (outcome 'completed')
     any of INIT, SEARCH, ACTIVE --t - t_start >= max_duration--> DONE (outcome 'time_limit')
     DONE    --next tick--> STOPPING
     any     --fall, bridge lost, interrupt, object lost, landmarks lost, search exhausted--> STOPPING
     STOPPING --a state received after the stop says not walking, or stop_timeout--> FINISHED
 
-Abort rules in ACTIVE: the object unseen for ``object_lost_timeout`` s ('object_lost'); no
-landmark fix for ``landmarks_lost_timeout`` s ('landmarks_lost'). The first outcome wins; later
+Abort rules in LOCALIZE and ACTIVE: the object unseen for ``object_lost_timeout`` s
+('object_lost'); in ACTIVE, no landmark fix for ``landmarks_lost_timeout`` s ('landmarks_lost').
+In any phase before DONE, ``max_frame_failures`` frames in a row that a per-frame step failed on
+end the mission ('frame_failures'; the reason names the step and its last error). The first outcome wins; later
 events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
 before anything else happens, whatever the outcome.
 
-In ACTIVE the mission does not choose the motion: ``Decision.walk`` and ``Decision.head`` are None
+In LOCALIZE the mission keeps the robot still and leaves the head to the caller; in ACTIVE it
+does not choose the motion: ``Decision.walk`` and ``Decision.head`` are None
 and the caller applies the planner's command and the head servo's target.
 """
 
@@ -34,6 +42,7 @@ from nao_core.config import bounds
 class Phase(str, Enum):
     INIT = "init"
     SEARCH = "search"
+    LOCALIZE = "localize"
     ACTIVE = "active"
     DONE = "done"
     STOPPING = "stopping"
@@ -49,6 +58,7 @@ class Outcome(str, Enum):
     FALLEN = "fallen"
     BRIDGE_LOST = "bridge_lost"
     INTERRUPTED = "interrupted"
+    FRAME_FAILURES = "frame_failures"
 
     @property
     def success(self) -> bool:
@@ -67,6 +77,10 @@ class MissionParams:
     search_max_turns: float = field(default=1.25, metadata=bounds(0.0, 10.0))
     object_lost_timeout: float = field(default=6.0, metadata=bounds(0.1, 600.0))
     landmarks_lost_timeout: float = field(default=10.0, metadata=bounds(0.1, 600.0))
+    no_fix_timeout: float = field(default=30.0, metadata=bounds(0.1, 3600.0))
+    max_frame_failures: int = field(default=30, metadata=bounds(1, 100000))
+    gaze_dwell: float = field(default=1.0, metadata=bounds(0.1, 30.0))
+    min_image_distance: float = field(default=0.35, metadata=bounds(0.0, 5.0))
     stop_timeout: float = field(default=4.0, metadata=bounds(0.0, 60.0))
 
     @property
@@ -105,6 +119,8 @@ class Mission:
         self._t_state = -math.inf
         self._t_object: Optional[float] = None
         self._t_fix: Optional[float] = None
+        self.landmark_frames = 0  # frames in which landmarks were detected (fix or not)
+        self.frame_failures = 0  # frames in a row a per-frame step failed on
 
     # events -----------------------------------------------------------------------------------
 
@@ -114,14 +130,25 @@ class Mission:
         if fallen:
             self._end(t, Outcome.FALLEN, "the robot fell")
 
-    def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool) -> None:
-        """One processed frame: was the object measured, did landmarks fix the pose, is a pose known."""
+    def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool, landmarks_seen: bool = False) -> None:
+        """One processed frame: was the object measured, did landmarks fix the pose, is a pose
+        known, were landmarks detected at all."""
+        self.frame_failures = 0
+        self.landmark_frames += landmarks_seen or landmark_fix
         if object_seen:
             self._t_object = t
         if landmark_fix:
             self._t_fix = t
-        if self.phase is Phase.SEARCH and object_seen and localized:
+        if self.phase in (Phase.SEARCH, Phase.LOCALIZE) and object_seen and localized:
             self._enter(Phase.ACTIVE, t)
+        elif self.phase is Phase.SEARCH and object_seen:
+            self._enter(Phase.LOCALIZE, t)
+
+    def on_frame_failed(self, t: float, step: str, error: str) -> None:
+        """A frame a per-frame step raised on (the caller dropped it)."""
+        self.frame_failures += 1
+        if self.frame_failures >= self.params.max_frame_failures:
+            self._end(t, Outcome.FRAME_FAILURES, f"{step} failed on {self.frame_failures} frames in a row: {error}")
 
     def on_goal(self, t: float, reason: str) -> None:
         if self.phase is Phase.ACTIVE:
@@ -141,6 +168,11 @@ class Mission:
             self._t_start = self._t_phase = t
         if self.phase in (Phase.INIT, Phase.SEARCH, Phase.ACTIVE) and t - self._t_start >= p.max_duration:
             self._end(t, Outcome.TIME_LIMIT, f"time limit of {p.max_duration:g} s reached", abort=False)
+        if self.phase in (Phase.INIT, Phase.SEARCH, Phase.LOCALIZE) and self._t_fix is None \
+                and t - self._t_start >= p.no_fix_timeout:
+            seen = "the object seen" if self._t_object is not None else "the object not seen"
+            self._end(t, Outcome.LANDMARKS_LOST,
+                      f"no landmark fix in {p.no_fix_timeout:g} s: landmarks detected in {self.landmark_frames} frames, {seen}")
         elapsed = t - self._t_phase
 
         if self.phase is Phase.INIT:
@@ -151,6 +183,11 @@ class Mission:
                 return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(0.0, p.init_pitch))
         if self.phase is Phase.SEARCH:
             return self._search(t, elapsed)
+        if self.phase is Phase.LOCALIZE:
+            if t - self._t_object > p.object_lost_timeout:
+                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s while waiting for a landmark fix")
+            else:
+                return Decision(self.phase, walk=(0.0, 0.0, 0.0))
         if self.phase is Phase.ACTIVE:
             if self._t_object is None or t - self._t_object > p.object_lost_timeout:
                 self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s")
@@ -174,7 +211,8 @@ class Mission:
             yaw = p.search_head_yaws[int(elapsed // p.search_dwell)]
             return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(yaw, p.init_pitch))
         if elapsed - scan_time >= p.search_turn_duration:
-            self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not found after a head scan and {p.search_max_turns:g} turns")
+            self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not seen in a head scan and {p.search_max_turns:g} turns "
+                      f"(landmarks detected in {self.landmark_frames} frames)")
             return self.tick(t)
         return Decision(self.phase, walk=(0.0, 0.0, p.search_turn_rate), head=(0.0, p.init_pitch))
 

@@ -18,21 +18,22 @@ import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from tqdm import tqdm
 
+from agent.camera import CameraModel
 from agent.carving import VoxelCarver
 from agent.perception import extract_silhouette
 from nao_core.protocol import FrameMeta, decode
 from station.carving_worker import View, carve_views
 from station.mcap_log import LogError, read_log
-from station.pilot import camera_from_info
-from station.replay import load_setup
+from station.runlog import load_recorded
 from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME
 
 
 def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, tolerance: Optional[int] = None,
               progress: bool = True) -> VoxelCarver:
-    config, info = load_setup(log_path)
+    setup = load_recorded(log_path)
+    config = setup.config
     params = config.carving if tolerance is None else dataclasses.replace(config.carving, tolerance=tolerance)
-    camera = camera_from_info(info)
+    camera = CameraModel.from_intrinsics(setup.info.intrinsics)
     wanted: Dict[int, Dict] = {}
     estimate = None
     for message in read_log(log_path, topics={KEYFRAME, EKF}):

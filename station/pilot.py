@@ -1,175 +1,280 @@
-"""The agent pipeline the station runs, as a deterministic function of the logged inputs.
+"""The agent pipeline the station runs, as a deterministic function of its input events.
 
-Inputs, each stamped with the station time t at which it was processed: robot states, frames,
-control ticks, the bridge going away, interrupts. The live loop (:mod:`station.run`) and the
-replay (:mod:`station.replay`) feed the same inputs in the same order to a fresh ``Pilot`` and
-must get the same outputs: nothing here reads a clock, a random source without a fixed seed, or
-anything not passed in.
+``Pilot.handle(event) -> Step`` is the one entry point (events in :mod:`station.events`, output
+records in :mod:`station.outputs`). The live loop (:mod:`station.run`) and the replay
+(:mod:`station.replay`) hand the same events in the same order to a fresh ``Pilot`` and must get
+the same outputs: nothing here reads a clock, a random source without a fixed seed, or anything
+not passed in.
 
-Per frame (capture time s, head kinematics T_BC and odometry at capture, in the frame's meta)::
+Per frame (capture time s, head kinematics T_BC and odometry at capture, in the frame's meta),
+each step guarded: a step that raises drops the frame (``/agent/frame_rejected``: step, error,
+failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agent.mission`)::
 
-    image = imdecode(JPEG);  localizer.on_frame(...);  pose = localizer.pose_at(odom at capture)
+    decode:        image = imdecode(JPEG) at the camera's size
+    localization:  localizer.on_frame(...);  pose = localizer.pose_at(odom at capture), or the
+                   odometry itself before the first landmark fix (the odometry frame)
     T_WC = T_WB(pose) T_BC;  cam = (C_x, C_y, psi(T_WC))                 camera on the floor plane
-    silhouette = extract_silhouette(image, predicted pixel of the estimate)
-    (phi, delta) = measure_object(silhouette, camera, T_WC)               delta None when cut by a border
-    EKF: predict(s - s_prev), then update(cam, phi, delta), or initialize on the first measurement
-    coverage.add(cam);  keyframe iff the whole silhouette was measured and the viewing azimuth
-    a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle
+    perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
+                   the image gives (agent/clearance.py)
+    filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize
+    coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
+                   measured and the viewing azimuth a = atan2(C - o) differs from every earlier
+                   keyframe's by >= keyframe_min_angle
 
-Per tick: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the current
-plan's first command, re-sent every tick (the bridge's deadman), and the head follows the head
-servo's target (the estimate's direction blended with the last silhouette centroid). Then, once the tick's commands are out (planning never delays them), every
-``planner.period`` in ACTIVE the planner's termination test runs (goal reached ->
-``mission.on_goal``, the next tick stops the robot), else it replans (the new command goes out on
-the next tick).
+Re-anchoring: before the first fix the filter runs in the odometry frame O and its measurements
+are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each kept measurement
+is moved into W (cam_xy <- T_WO cam_xy, psi and phi += theta_WO) and the filter is rebuilt from
+them in order: the estimate of the odometry frame becomes the same estimate in W.
+
+Per ``Tick``: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the
+current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
+head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
+and the next yaw of the landmark scan. Whatever the phase, a walk command that approaches the
+object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
+last image put the object nearer than ``mission.min_image_distance``.
+Per ``Replan`` (after the tick's commands are out: planning never delays them), every
+``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
+(goal reached -> ``mission.on_goal``, the next tick stops the robot), else a new plan (its
+command goes out on the next tick).
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Tuple, Type
 
 import cv2
 import numpy as np
 
 from agent.camera import CameraModel, optical_axis_heading
+from agent.clearance import image_distance
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
-from agent.head_servo import head_target
+from agent.head_servo import ObjectHeight, head_target
 from agent.localization import RobotLocalizer
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
-from nao_core.geometry import camera_in_world, wrap_angle
-from nao_core.protocol import Frame, Info, State
+from nao_core.geometry import Pose, camera_in_world, compose, relative, wrap_angle
+from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel
 from station.config import StationConfig
-from station.topics import (
-    COVERAGE,
-    DECISION,
-    EKF,
-    FRAME_REJECTED,
-    KEYFRAME,
-    MEASUREMENT,
-    PLAN,
-    POSE,
+from station.events import BridgeLost, Event, FrameReceived, Interrupted, Replan, StateReceived, Tick
+from station.outputs import (
+    CoverageRecord,
+    DecisionRecord,
+    EkfRecord,
+    FrameRejectedRecord,
+    KeyframeRecord,
+    MeasurementRecord,
+    PlanRecord,
+    PoseRecord,
+    Record,
 )
 
-Output = Tuple[str, Dict[str, Any]]
+Cam = Tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class KeyframeView:
+    """A view for the carver: the silhouette, the camera pose, and the estimate it was chosen with."""
+
+    mask: np.ndarray
+    T_WC: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
 
 
 @dataclass
 class Step:
-    """What one input produced: log outputs, a decision to act on, a view for the carver."""
+    """What one event produced: log records, a decision to act on, a view for the carver."""
 
-    outputs: List[Output] = field(default_factory=list)
+    outputs: List[Record] = field(default_factory=list)
     decision: Optional[Decision] = None
-    keyframe: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (silhouette mask, T_WC)
+    keyframe: Optional[KeyframeView] = None
 
 
-def camera_from_info(info: Info) -> CameraModel:
-    return CameraModel.from_intrinsics(info.intrinsics)
+class FrameStepFailed(Exception):
+    def __init__(self, step: str, error: BaseException):
+        super().__init__(f"{step}: {type(error).__name__}: {error}")
+        self.step, self.error = step, f"{type(error).__name__}: {error}"
+
+
+@contextmanager
+def guarded(step: str) -> Iterator[None]:
+    """Run one per-frame step; whatever it raises becomes FrameStepFailed naming the step."""
+    try:
+        yield
+    except Exception as exc:  # noqa: BLE001 - nothing a frame contains may end the mission
+        raise FrameStepFailed(step, exc) from exc
+
+
+def _flat(T: np.ndarray) -> Tuple[float, ...]:
+    return tuple(float(v) for v in T.ravel())
 
 
 class Pilot:
     def __init__(self, config: StationConfig, info: Info):
         self.config = config
         self.robot: RobotModel = info.robot
-        self.camera = camera_from_info(info)
+        self.camera = CameraModel.from_intrinsics(info.intrinsics)
         self.mission = Mission(config.mission)
         self.ekf = ObjectEKF(config.ekf)
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
-        self.pose: Optional[Tuple[float, float, float]] = None
+        self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
+        self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.dropped: Counter = Counter()  # frames dropped, by the step that raised
+        self._unanchored: List[Tuple[float, Cam, float, Optional[float]]] = []  # (stamp, cam, phi, delta) in O
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
         self._last_capture: Optional[float] = None
         self._keyframe_azimuths: List[float] = []
+        self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
+        self._near: Optional[Tuple[float, float]] = None  # (image distance, bearing in the robot frame) at the last sighting
+        self._handlers: Dict[Type, Callable[..., Step]] = {
+            StateReceived: self._on_state, FrameReceived: self._on_frame, Tick: self._on_tick, Replan: self._on_replan,
+            BridgeLost: self._on_bridge_lost, Interrupted: self._on_interrupt,
+        }
 
-    # inputs -----------------------------------------------------------------------------------
+    def handle(self, event: Event) -> Step:
+        """The pilot's response to one input event."""
+        return self._handlers[type(event)](event)
 
-    def on_state(self, state: State, t: float) -> Step:
+    # events -----------------------------------------------------------------------------------
+
+    def _on_state(self, event: StateReceived) -> Step:
+        state = event.state
         self.localizer.on_odometry(state.odom, state.stamp)
-        self.mission.on_state(t, state.fallen, state.walking, state.head_yaw, state.head_pitch)
+        self.mission.on_state(event.t, state.fallen, state.walking, state.head_yaw, state.head_pitch)
         return Step()
 
-    def on_frame(self, frame: Frame, t: float) -> Step:
-        meta = frame.meta
-        image = cv2.imdecode(np.frombuffer(frame.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
-        if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
-            return Step([(FRAME_REJECTED, {"t": t, "seq": meta.seq, "reason": "JPEG does not decode to the camera's image size"})])
-        T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
-        fix = self.localizer.on_frame(image, T_BC, meta.odom, meta.stamp)
-        self.pose = self.localizer.pose_at(meta.odom)  # at capture time
+    def _on_frame(self, event: FrameReceived) -> Step:
         step = Step()
-        object_seen = False
-        if self.pose is not None:
-            T_WC = camera_in_world(self.pose, T_BC)
-            cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
-            step.outputs.append((POSE, {"t": t, "seq": meta.seq, "stamp": meta.stamp, "pose": list(self.pose),
-                                        "odom": list(meta.odom), "landmark_fix": fix is not None, "T_WC": T_WC.ravel().tolist()}))
-            predicted = self._predicted_pixel(T_WC)
-            silhouette = extract_silhouette(image, self.config.perception, predicted)
-            measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
-            self._sighting = None
-            if measurement is not None:
-                object_seen = True
-                self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
-                self._filter(step, t, meta.seq, meta.stamp, cam, measurement)
-                if silhouette.width_valid:
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted)
-            self.coverage.add(np.asarray(cam))
-            if self.ekf.initialized:
-                step.outputs.append((COVERAGE, {"t": t, "fraction": self.coverage.fraction(self.ekf.x)}))
-        self.mission.on_frame(t, object_seen, fix is not None, self.pose is not None)
+        try:
+            self._frame(event, step)
+        except FrameStepFailed as failure:
+            self.dropped[failure.step] += 1
+            self.mission.on_frame_failed(event.t, failure.step, failure.error)
+            step.outputs.append(FrameRejectedRecord(event.t, event.frame.meta.seq, failure.step, failure.error,
+                                                    self.mission.frame_failures))
         return step
 
-    def on_bridge_lost(self, t: float) -> Step:
-        self.mission.on_bridge_lost(t)
+    def _on_bridge_lost(self, event: BridgeLost) -> Step:
+        self.mission.on_bridge_lost(event.t)
         return Step()
 
-    def on_interrupt(self, t: float, signal_name: str) -> Step:
-        self.mission.on_interrupt(t, signal_name)
+    def _on_interrupt(self, event: Interrupted) -> Step:
+        self.mission.on_interrupt(event.t, event.signal)
         return Step()
 
-    def tick(self, t: float) -> Step:
-        """The mission's decision for now; in ACTIVE the current plan's command and the head target."""
+    def _on_tick(self, event: Tick) -> Step:
+        """The mission's decision for now, with the pilot's walk and head where the mission leaves them."""
+        t = event.t
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
-            head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture)
+            head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture,
+                               self.height.aim)
             decision = Decision(decision.phase, walk=self.command, head=head)
-        return Step([(DECISION, {
-            "t": t, "phase": decision.phase.value, "walk": decision.walk, "head": decision.head, "stop": decision.stop,
-            "outcome": decision.outcome.value if decision.outcome else None, "reason": decision.reason,
-        })], decision=decision)
+        elif decision.phase is Phase.LOCALIZE:
+            decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
+        if decision.walk is not None and not decision.stop:
+            decision = Decision(decision.phase, walk=self._clear(decision.walk), head=decision.head)
+        record = DecisionRecord(t, decision.phase.value, decision.walk, decision.head, decision.stop,
+                                decision.outcome.value if decision.outcome else None, decision.reason)
+        return Step([record], decision=decision)
 
-    def replan(self, t: float) -> Step:
-        """After the tick's commands are sent: every planner period in ACTIVE, the termination test
-        (goal reached -> the next tick stops the robot) or a new plan (its command goes out next tick)."""
+    def _on_replan(self, event: Replan) -> Step:
         step = Step()
         if self.mission.phase is Phase.ACTIVE:
-            self._control(step, t)
+            self._control(step, event.t)
         return step
 
-    # helpers ----------------------------------------------------------------------------------
+    # per frame --------------------------------------------------------------------------------
 
-    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam, measurement) -> None:
+    def _frame(self, event: FrameReceived, step: Step) -> None:
+        t, meta = event.t, event.frame.meta
+        with guarded("decode"):
+            image = cv2.imdecode(np.frombuffer(event.frame.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
+            if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
+                raise ValueError(f"JPEG does not decode to the camera's {self.camera.width} x {self.camera.height} image")
+            T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
+        with guarded("localization"):
+            fix = self.localizer.on_frame(image, T_BC, meta.odom, meta.stamp)
+            world = self.localizer.pose_at(meta.odom)  # at capture time
+            if world is not None and not self.anchored:
+                self._reanchor(world, meta.odom)
+            self.pose = world if world is not None else tuple(float(v) for v in meta.odom)
+            T_WC = camera_in_world(self.pose, T_BC)
+            cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
+        step.outputs.append(PoseRecord(t, meta.seq, meta.stamp, self.pose, tuple(map(float, meta.odom)), fix is not None,
+                                       _flat(T_WC), _flat(T_BC), self.anchored))
+        with guarded("perception"):
+            predicted = self._predicted_pixel(T_WC)
+            silhouette = extract_silhouette(image, self.config.perception, predicted)
+            measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
+            self._sighting = self._near = None
+            if measurement is not None:
+                self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
+                self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
+                                   self.ekf.x if self.ekf.initialized else None)
+                radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior
+                distance = image_distance(silhouette, measurement.delta, float(radius), self.camera, T_WC)
+                if distance is not None:
+                    self._near = (distance, wrap_angle(measurement.azimuth - self.pose[2]))
+        if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
+            with guarded("filter"):
+                self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
+            if self.anchored:  # top/bottom-cut views still carve (the border is not an object edge)
+                with guarded("keyframe"):
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted)
+        if self.anchored:
+            with guarded("coverage"):
+                self.coverage.add(np.asarray(cam))
+                if self.ekf.initialized:
+                    step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
+        self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored)
+
+    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, phi: float, delta: Optional[float]) -> None:
+        if not self.anchored:
+            self._unanchored.append((stamp, cam, phi, delta))
+        result = self._observe(stamp, cam, phi, delta)
+        step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
+                                              result.accepted, None if result.nis is None else float(result.nis), result.reason))
+        step.outputs.append(self._ekf_record(t))
+
+    def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float]):
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            result = self.ekf.update(cam, measurement.phi, measurement.delta)
+            result = self.ekf.update(cam, phi, delta)
         else:
-            result = self.ekf.initialize(cam, measurement.phi, measurement.delta)
+            result = self.ekf.initialize(cam, phi, delta)
         self._last_capture = stamp
-        step.outputs.append((MEASUREMENT, {
-            "t": t, "seq": seq, "cam": list(cam), "phi": measurement.phi, "delta": measurement.delta,
-            "accepted": result.accepted, "nis": result.nis, "reason": result.reason,
-        }))
-        step.outputs.append((EKF, {"t": t, **self.ekf.snapshot()}))
+        return result
+
+    def _reanchor(self, world: Pose, odom: Pose) -> None:
+        """Move the filter from the odometry frame into W (module docstring)."""
+        x0, y0, theta = compose(world, relative(odom, (0.0, 0.0, 0.0)))  # T_WO
+        c, s = math.cos(theta), math.sin(theta)
+        kept, self._unanchored = self._unanchored, []
+        self.anchored = True
+        self.ekf = ObjectEKF(self.config.ekf)
+        self._last_capture = None
+        for stamp, (cx, cy, psi), phi, delta in kept:
+            cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
+            self._observe(stamp, cam, wrap_angle(phi + theta), delta)
+
+    def _ekf_record(self, t: float) -> EkfRecord:
+        x, P = self.ekf.x, self.ekf.P
+        return EkfRecord(t, None if x is None else tuple(map(float, x)), None if P is None else tuple(tuple(map(float, row)) for row in P),
+                         {k: int(v) for k, v in self.ekf.stats.as_dict().items()})
 
     def _predicted_pixel(self, T_WC: np.ndarray) -> Optional[Tuple[float, float]]:
         """Where the estimate's centre (at the servo's aim height) should appear, to pick the right blob."""
@@ -179,7 +284,7 @@ class Pilot:
         uv, in_front = self.camera.project_world(np.array([[x[0], x[1], self.config.perception.aim_height]]), T_WC)
         return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
 
-    def _maybe_keyframe(self, step: Step, t: float, seq: int, cam, mask: np.ndarray, T_WC: np.ndarray,
+    def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
                         predicted: Optional[Tuple[float, float]]) -> None:
         if not self.ekf.initialized:
             return
@@ -188,9 +293,29 @@ class Pilot:
         if gap < self.config.station.keyframe_min_angle:
             return
         self._keyframe_azimuths.append(azimuth)
-        step.keyframe = (mask, T_WC)
-        step.outputs.append((KEYFRAME, {"t": t, "seq": seq, "azimuth": azimuth, "T_WC": T_WC.ravel().tolist(),
-                                        "predicted_uv": predicted}))
+        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy())
+        step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted))
+
+    # per tick ---------------------------------------------------------------------------------
+
+    def _localize_gaze(self, t: float) -> Tuple[float, float]:
+        """LOCALIZE: even dwells on the object, odd ones on the next yaw of the landmark scan."""
+        p = self.config.mission
+        slot = int(t // p.gaze_dwell)
+        if slot % 2 == 0 and self.ekf.initialized:
+            centroid, head_at_capture = self._sighting if self._sighting else (None, None)
+            return head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture)
+        yaws = p.search_head_yaws
+        return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
+
+    def _clear(self, walk: Tuple[float, float, float]) -> Tuple[float, float, float]:
+        """The walk command, cut to its turn when it approaches an object the image shows too near."""
+        if self._near is None or self._near[0] >= self.config.mission.min_image_distance:
+            return walk
+        bearing = self._near[1]
+        if walk[0] * math.cos(bearing) + walk[1] * math.sin(bearing) <= 1e-9:  # not approaching
+            return walk
+        return (0.0, 0.0, walk[2])
 
     def _control(self, step: Step, t: float) -> None:
         if self._t_active is None:
@@ -201,14 +326,13 @@ class Pilot:
             return
         self._t_plan = t
         x, P = self.ekf.x, self.ekf.P
-        fraction = self.coverage.fraction(x)
-        reason = termination_reason(fraction, P, t - self._t_active, self.config.planner.termination)
+        termination = self.config.planner.termination
+        reason = termination_reason(self.coverage.fraction(x, termination.facing_margin), P, t - self._t_active, termination)
         if reason is not None and reason.startswith("complete"):  # the time limit is the mission's
             self.mission.on_goal(t, reason)
             return
-        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage)
+        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top)
         self.command = plan.command
-        step.outputs.append((PLAN, {
-            "t": t, "omegas": plan.omegas.tolist(), "command": list(plan.command), "cost": plan.cost,
-            "terms": plan.terms, "evaluations": plan.evaluations, "coverage": fraction,
-        }))
+        step.outputs.append(PlanRecord(t, [float(w) for w in plan.omegas], tuple(map(float, plan.command)), float(plan.cost),
+                                       {k: float(v) for k, v in plan.terms.items()}, int(plan.evaluations),
+                                       self.coverage.fraction(x)))

@@ -5,30 +5,31 @@ One pass of the loop (single thread; Zenoh callbacks only enqueue):
 
     wait for the inbox (at most until the next tick is due)
     drain it: states -> pilot; truth -> log; bridge lost -> pilot; frames -> log all, keep the newest
+    an interrupt flag set by SIGINT/SIGTERM -> pilot
     newest frame -> pilot (per-frame pipeline), keyframes -> carving worker
     tick due (t >= t_last_tick + control_period), or a frame just processed and half a period
-    passed -> pilot.tick -> walk and head commands sent, the walk command with its TTL;
-    then pilot.replan (planner, when due: never delays the tick's commands)
-    an interrupt flag set by SIGINT/SIGTERM -> pilot.on_interrupt
+    passed -> ``Tick`` -> walk and head commands sent, the walk command with its TTL;
+    then ``Replan`` (the planner, when due: never delays the tick's commands)
     flush the log about once a second
 
-Every input handed to the pilot is journalled on ``/station/input`` (kind, station time t) right
-after its raw bytes, so replay can feed the same inputs in the same order. The log writes of a
-pass are queued and written, in order, once its commands are sent. Every decision with
-``stop`` sends a zero walk command; the robot is stopped before the loop returns, on every path.
+Every event handed to ``Pilot.handle`` (:mod:`station.events`) is journalled on
+``/station/input`` right after its raw bytes, so replay feeds the same events in the same order.
+The log writes of a pass are queued and written, in order, once its commands are sent. Every
+decision with ``stop`` sends a zero walk command; the robot is stopped before the loop returns, on
+every path: an exception from the pilot is logged on ``/station/error`` (with its traceback) and
+ends the run with outcome ``error``; a final carve that raises is reported in ``carving_error``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
+import logging
 import queue
 import sys
 import time
 import traceback
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, List, Optional, Tuple
 
 import numpy as np
 
@@ -50,21 +51,24 @@ from nao_core.protocol import (
 from station import foxglove
 from station.carving_worker import CarvingWorker
 from station.config import StationConfig
+from station.events import BridgeLost, Event, FrameReceived, Interrupted, JournalEntry, Replan, StateReceived, Tick
 from station.link import BridgeLink, Received
 from station.mcap_log import McapLog
+from station.outputs import EkfRecord, MeasurementRecord, PoseRecord, Record
 from station.pilot import Pilot, Step
+from station.runlog import config_record, pilot_sources  # noqa: F401 - pilot_sources: the digest's file list
 from station.topics import (
+    ANNOTATIONS,
     CALIBRATION,
     CARVING,
     CMD_HEAD,
     CMD_WALK,
     CONFIG,
-    EKF,
+    ERROR,
     FRAME_IMAGE,
     FRAME_META,
     INFO,
     INPUT,
-    POSE,
     REJECTED,
     SCENE_KEYFRAMES,
     SCENE_LANDMARKS,
@@ -72,10 +76,12 @@ from station.topics import (
     SCENE_OBJECT,
     STATE,
     TF,
+    TRAJECTORY,
     TRUTH,
 )
 
 STATION_SCHEMA = {"title": "station.Json", "type": "object"}
+log = logging.getLogger("station.run")
 
 
 @dataclass
@@ -90,29 +96,7 @@ class RunSummary:
     carving_error: Optional[str]
     x: Optional[np.ndarray]
     P: Optional[np.ndarray]
-
-
-def pilot_sources(root: Path) -> List[Path]:
-    """Every source file the pilot runs: the algorithms, the core they build on, the pilot itself."""
-    return sorted([*(root / "agent").rglob("*.py"), *(root / "nao_core").rglob("*.py"), root / "station" / "pilot.py"])
-
-
-def code_digest() -> str:
-    """SHA-256 of the code the pilot executes (agent/, nao_core/ and the pilot): replay says when it changed."""
-    root = Path(__file__).resolve().parent.parent
-    digest = hashlib.sha256()
-    for path in pilot_sources(root):
-        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()
-
-
-def config_record(config: StationConfig) -> Dict[str, Any]:
-    """The resolved configuration, as logged on /station/config (replay rebuilds it from this),
-    with the digest of the agent's code under ``code``."""
-    record: Dict[str, Any] = {name: dataclasses.asdict(getattr(config, name)) for name in config.section_names}
-    record["landmarks"] = dataclasses.asdict(config.landmarks)
-    record["code"] = code_digest()
-    return record
+    dropped: dict = dataclasses.field(default_factory=dict)  # frames the pilot dropped, by failing step
 
 
 class ControlLoop:
@@ -140,6 +124,8 @@ class ControlLoop:
         self._interrupt_sent = False
         self._phase: Optional[Phase] = None
         self._pending: List[Tuple[Callable[..., None], Tuple[Any, ...]]] = []
+        self._trajectory: List[Tuple[float, ...]] = []
+        self._estimate: Optional[Tuple[float, float]] = None
 
     def run(self) -> RunSummary:
         t_start = self.clock()
@@ -152,68 +138,82 @@ class ControlLoop:
         except Exception as exc:  # a bug must still stop the robot, keep the log and say why
             reason = f"station error: {type(exc).__name__}: {exc}"
             traceback.print_exc()
+            t = self.clock()
+            self._later(self.log.json, ERROR, {"t": t, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()},
+                        t, STATION_SCHEMA)
         finally:
             self._send_stop()
             self._commit()
             x, P = self.pilot.ekf.x, self.pilot.ekf.P
+            carver, carving_error = self._final_carve(x, P)
+            summary = RunSummary(
+                outcome=outcome, reason=reason, success=outcome == Outcome.COMPLETED.value,
+                frames_received=self.frames_received, frames_processed=self.frames_processed,
+                duration=self.clock() - t_start, carver=carver, carving_error=carving_error, x=x, P=P,
+                dropped=dict(self.pilot.dropped),
+            )
+        return summary
+
+    def _final_carve(self, x: Optional[np.ndarray], P: Optional[np.ndarray]) -> Tuple[Any, Optional[str]]:
+        """The final model, or None and why: whatever the carver raises, the run's outputs are written."""
+        try:
             carver = self.carving.finish(x, P)
             if carver is not None:
                 t = self.clock()
                 self.log.proto(SCENE_MODEL, foxglove.model(t, _glb(carver)), t)
-            summary = RunSummary(
-                outcome=outcome, reason=reason, success=outcome == Outcome.COMPLETED.value,
-                frames_received=self.frames_received, frames_processed=self.frames_processed,
-                duration=self.clock() - t_start, carver=carver, carving_error=self.carving.error, x=x, P=P,
-            )
-        return summary
+            return carver, self.carving.error
+        except Exception as exc:  # noqa: BLE001 - the result must be written whatever the carver did
+            traceback.print_exc()
+            return None, f"final carving failed: {type(exc).__name__}: {exc}"
 
     # one pass -----------------------------------------------------------------------------------
 
     def _pass(self) -> bool:
         period = self.config.station.control_period
         timeout = max(0.0, self._t_tick + period - self.clock())
-        events = self._drain(timeout)
-        newest: Optional[Received] = None
-        for event in events:
-            if event.kind == "state":
-                self._state(event)
-            elif event.kind == "truth":
-                self._raw(TRUTH, event, Truth)
-            elif event.kind == "bridge_lost":
-                self._journal("bridge_lost", event.t)
-                self._apply(self.pilot.on_bridge_lost(event.t), event.t)
-        for frame in self.link.take_frames():
-            decoded = self._frame_log(frame)
-            if decoded is not None:
-                newest = frame
-                newest_decoded = decoded
+        newest: Optional[Frame] = None
+        for received in self._drain(timeout):
+            if received.kind == "state":
+                state = self._raw(STATE, received, State)
+                if state is not None:
+                    self._handle(StateReceived(received.t, state))
+            elif received.kind == "truth":
+                self._raw(TRUTH, received, Truth)
+            elif received.kind == "bridge_lost":
+                self._handle(BridgeLost(received.t))
+        for received in self.link.take_frames():
+            newest = self._frame_log(received) or newest
         signal_name = self.interrupted()
         if signal_name and not self._interrupt_sent:
             self._interrupt_sent = True
-            t = self.clock()
-            self._journal("interrupt", t, signal=signal_name)
-            self._apply(self.pilot.on_interrupt(t, signal_name), t)
+            self._handle(Interrupted(self.clock(), signal_name))
         if newest is not None:
-            t = self.clock()
-            self._journal("frame", t, seq=newest_decoded.meta.seq)
             self.frames_processed += 1
-            self._apply(self.pilot.on_frame(newest_decoded, t), t)
+            self._handle(FrameReceived(self.clock(), newest))
         t = self.clock()
         finished = False
         if t >= self._t_tick + period or (newest is not None and t >= self._t_tick + 0.5 * period):
             self._t_tick = t
-            self._journal("tick", t)
-            finished = self._apply(self.pilot.tick(t), t)
+            finished = self._apply(self._handle(Tick(t)), t)
             if newest is not None:
-                self.latencies.append(self.clock() - newest.t)
+                self.latencies.append(self.clock() - self._frame_arrival)
             t_plan = self.clock()
-            plan = self.pilot.replan(t)
+            plan = self._handle(Replan(t))
             if plan.outputs:
                 self.plan_times.append(self.clock() - t_plan)
             self._apply(plan, t)
         self._commit()
         self.log.maybe_flush()
         return finished
+
+    def _handle(self, event: Event) -> Step:
+        """Journal an event and hand it to the pilot; states, frames and events are acted on at once,
+        ticks and replans by the caller (it times them)."""
+        self._later(self.log.json, INPUT, JournalEntry.of(event).to_json(), event.t, JournalEntry.schema())
+        step = self.pilot.handle(event)
+        if not isinstance(event, (Tick, Replan)):
+            self._apply(step, event.t)
+        return step
 
     def _later(self, write: Callable[..., None], *args: Any) -> None:
         """Queue a log write (in order) until the pass's commands are out: logging never delays them."""
@@ -236,12 +236,6 @@ class ControlLoop:
 
     # inputs -------------------------------------------------------------------------------------
 
-    def _state(self, event: Received) -> None:
-        state = self._raw(STATE, event, State)
-        if state is not None:
-            self._journal("state", event.t)
-            self._apply(self.pilot.on_state(state, event.t), event.t)
-
     def _raw(self, topic: str, event: Received, cls: type) -> Any:
         try:
             message = decode(event.payload, cls)
@@ -262,21 +256,20 @@ class ControlLoop:
         self._later(self.log.proto, FRAME_IMAGE, foxglove.compressed_image(frame.meta.stamp, frame.jpeg), event.t)
         if self.frames_received == 1:
             self._later(self.log.proto, CALIBRATION, foxglove.camera_calibration(frame.meta.stamp, self.camera), event.t)
+        self._frame_arrival = event.t
         return frame
-
-    def _journal(self, kind: str, t: float, **extra: Any) -> None:
-        self._later(self.log.json, INPUT, {"kind": kind, "t": t, **extra}, t, STATION_SCHEMA)
 
     # outputs ------------------------------------------------------------------------------------
 
     def _apply(self, step: Step, t: float) -> bool:
-        for topic, payload in step.outputs:
-            self._later(self.log.json, topic, payload, t, {"title": f"agent{topic.replace('/', '.')}", "type": "object"})
-            self._later(self._visualize, topic, payload, t)
+        for record in step.outputs:
+            self._later(self.log.json, record.TOPIC, record.to_json(), t, record.schema())
+            self._later(self._visualize, record, t)
+        self._later(self._annotate, step, t)
         if step.keyframe is not None:
-            mask, T_WC = step.keyframe
-            self.carving.submit(mask, T_WC, self.pilot.ekf.x, self.pilot.ekf.P)
-            self._keyframe_poses.append(T_WC)
+            view = step.keyframe
+            self.carving.submit(view.mask, view.T_WC, view.x, view.P)
+            self._keyframe_poses.append(view.T_WC)
             poses = list(self._keyframe_poses)
             self._later(lambda: self.log.proto(SCENE_KEYFRAMES, foxglove.frusta(t, self.camera, poses), t))
         decision = step.decision
@@ -284,21 +277,36 @@ class ControlLoop:
             return False
         if decision.phase is not self._phase:
             self._phase = decision.phase
-            print(f"station: phase {decision.phase.value}", file=sys.stderr, flush=True)
+            log.info("phase %s", decision.phase.value)
         if decision.walk is not None:
             self._send_walk(*decision.walk)
         if decision.head is not None:
             self._send_head(*decision.head)
         return decision.finished
 
-    def _visualize(self, topic: str, payload: Dict[str, Any], t: float) -> None:
+    def _visualize(self, record: Record, t: float) -> None:
         """Foxglove views of an agent output (runs inside ``_commit``: writes directly)."""
-        if topic == EKF and payload["x"] is not None:
-            self.log.proto(SCENE_OBJECT, foxglove.object_estimate(t, np.asarray(payload["x"]), np.asarray(payload["P"])), t)
-        elif topic == POSE:
-            T_WB, T_odom_B = planar_transform(*payload["pose"]), planar_transform(*payload["odom"])
-            T_BC = invert(T_WB) @ np.asarray(payload["T_WC"]).reshape(4, 4)
-            self.log.proto(TF, foxglove.frame_transforms(payload["stamp"], T_WB @ invert(T_odom_B), T_odom_B, T_BC), t)
+        if isinstance(record, EkfRecord) and record.x is not None:
+            self.log.proto(SCENE_OBJECT, foxglove.object_estimate(t, np.asarray(record.x), np.asarray(record.P)), t)
+        elif isinstance(record, PoseRecord):
+            T_WB, T_odom_B = planar_transform(*record.pose), planar_transform(*record.odom)
+            T_BC = np.asarray(record.T_BC).reshape(4, 4)
+            self.log.proto(TF, foxglove.frame_transforms(record.stamp, T_WB @ invert(T_odom_B), T_odom_B, T_BC), t)
+
+    def _annotate(self, step: Step, t: float) -> None:
+        """After a frame's step: the robot's trajectory and the frame's image annotations (station.foxglove)."""
+        records = {type(r): r for r in step.outputs}
+        pose, measurement, ekf = records.get(PoseRecord), records.get(MeasurementRecord), records.get(EkfRecord)
+        if ekf is not None and ekf.x is not None:
+            self._estimate = (ekf.x[0], ekf.x[1])
+        if pose is None:
+            return
+        self._trajectory.append(tuple(pose.pose))
+        self.log.proto(TRAJECTORY, foxglove.trajectory(t, self._trajectory), t)
+        mask = step.keyframe.mask if step.keyframe is not None else None  # the silhouette the carver gets
+        view = foxglove.frame_view(pose, measurement, self._estimate, mask, self.config.landmarks,
+                                   self.config.perception.aim_height)
+        self.log.proto(ANNOTATIONS, foxglove.image_annotations(pose.stamp, self.camera, view), t)
 
     def _send_walk(self, vx: float, vy: float, omega: float) -> None:
         command = self.link.send_walk(vx, vy, omega, self.config.station.walk_ttl)

@@ -14,6 +14,7 @@ CONFIG = "/station/config"  # resolved configuration (replay rebuilds it)
 INPUT = "/station/input"  # journal of the inputs handed to the agent, in order
 REJECTED = "/station/rejected"  # messages that failed strict decoding
 CARVING = "/station/carving"  # live carving progress
+ERROR = "/station/error"  # an exception that ended the run, with its traceback
 # agent outputs (replay compares every topic under this prefix)
 AGENT_PREFIX = "/agent/"
 DECISION = "/agent/decision"
@@ -23,8 +24,11 @@ EKF = "/agent/ekf"
 COVERAGE = "/agent/coverage"
 PLAN = "/agent/plan"
 KEYFRAME = "/agent/keyframe"
-FRAME_REJECTED = "/agent/frame_rejected"  # a frame whose JPEG does not decode
-# Foxglove 3-D panel
+FRAME_REJECTED = "/agent/frame_rejected"  # a frame a per-frame step raised on (dropped)
+# Foxglove views (config/foxglove/layout.json)
+LOG = "/station/log"  # foxglove.Log: every console line
+ANNOTATIONS = "/nao/camera/annotations"  # foxglove.ImageAnnotations, stamped like the frame
+TRAJECTORY = "/scene/trajectory"  # foxglove.PosesInFrame: the robot's localized poses
 TF = "/tf"
 SCENE_OBJECT = "/scene/object"
 SCENE_LANDMARKS = "/scene/landmarks"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -70,12 +71,69 @@ def test_search_scans_head_then_turns_then_gives_up():
     assert d.outcome is Outcome.OBJECT_NOT_FOUND and d.stop and d.phase is Phase.STOPPING
 
 
-def test_object_seen_without_pose_keeps_searching():
+def searching_mission() -> Mission:
     mission = Mission(P)
     mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
     mission.tick(0.0)
-    mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
     assert mission.phase is Phase.SEARCH
+    return mission
+
+
+def test_object_seen_without_pose_localizes_standing_then_goes_active_on_the_fix():
+    mission = searching_mission()
+    mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
+    d = mission.tick(0.2)
+    # LOCALIZE: the robot stands, the head is the caller's (it alternates object / landmarks)
+    assert d.phase is Phase.LOCALIZE and d.walk == (0.0, 0.0, 0.0) and d.head is None and not d.stop
+    mission.on_frame(0.3, object_seen=True, landmark_fix=True, localized=True)
+    assert mission.phase is Phase.ACTIVE
+
+
+def test_localize_loses_the_object_after_its_timeout():
+    mission = searching_mission()
+    mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
+    assert mission.tick(0.1 + P.object_lost_timeout - 0.05).phase is Phase.LOCALIZE
+    d = mission.tick(0.1 + P.object_lost_timeout + 0.05)
+    assert d.outcome is Outcome.OBJECT_LOST and d.stop
+
+
+@pytest.mark.parametrize("object_seen", [True, False])
+def test_no_fix_at_all_ends_as_landmarks_lost_and_says_so(object_seen):
+    params = dataclasses.replace(P, object_lost_timeout=1000.0, search_max_turns=100.0)
+    mission = Mission(params)
+    mission.tick(0.0)
+    t = 0.0
+    while mission.outcome is None and t < params.no_fix_timeout + 1.0:
+        t = round(t + DT, 6)
+        mission.on_frame(t, object_seen=object_seen, landmark_fix=False, localized=False)
+        mission.tick(t)
+    assert mission.outcome is Outcome.LANDMARKS_LOST
+    assert t == pytest.approx(params.no_fix_timeout, abs=DT)  # the timeout counts from the first tick
+    assert mission.reason.startswith(f"no landmark fix in {params.no_fix_timeout:g} s: landmarks detected in 0 frames")
+    assert ("the object seen" if object_seen else "the object not seen") in mission.reason
+
+
+def test_object_not_found_says_what_localization_saw():
+    mission = searching_mission()
+    for k in range(3):
+        mission.on_frame(0.1 * (k + 1), object_seen=False, landmark_fix=False, localized=False, landmarks_seen=True)
+    d = mission.tick(3.0 + 2 * math.pi / P.search_turn_rate + 0.01)
+    assert d.outcome is Outcome.OBJECT_NOT_FOUND and "landmarks detected in 3 frames" in d.reason
+
+
+def test_frame_failures_in_a_row_end_the_mission_naming_the_step_and_error():
+    mission, t = active_mission()
+    n = P.max_frame_failures
+    for _ in range(n - 1):
+        mission.on_frame_failed(t, "localization", "LinAlgError: Singular matrix")
+    keep_seeing(mission, t)  # one good frame resets the count
+    assert mission.frame_failures == 0
+    for k in range(n):
+        assert mission.outcome is None
+        mission.on_frame_failed(t, "perception", f"ValueError: bad {k}")
+    d = mission.tick(t + DT)
+    assert d.outcome is Outcome.FRAME_FAILURES and d.stop
+    assert d.reason == f"perception failed on {n} frames in a row: ValueError: bad {n - 1}"
 
 
 def test_active_leaves_motion_to_the_planner_and_completes_on_goal():

@@ -22,6 +22,11 @@ def message_schema(cls: type, version: int) -> Dict[str, Any]:
     return {"$schema": DRAFT, "$id": f"nao-active-recon/{cls.TYPE}", "title": cls.__name__, **body}
 
 
+def record_schema(cls: type, name: str) -> Dict[str, Any]:
+    """The schema of a plain dataclass record (no message envelope), e.g. a station log record."""
+    return {"$schema": DRAFT, "$id": f"nao-active-recon/{name}", "title": name, **_object(cls)}
+
+
 def _object(cls: type) -> Dict[str, Any]:
     hints = typing.get_type_hints(cls)
     fields = [f for f in dataclasses.fields(cls) if f.init]

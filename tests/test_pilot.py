@@ -1,0 +1,171 @@
+"""The pilot against hostile inputs, its frame guard, its clearance cut, and the station loop around a
+pilot or a carver that raises (station.pilot, station.run imported directly; no processes)."""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from agent.mission import Outcome, Phase
+from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, encode
+from nao_core.robot_model import load_robot_model
+from station.config import load_station_config
+from station.events import FrameReceived, Replan, Tick
+from station.mcap_log import McapLog, read_log
+from station.outputs import OUTPUTS, FrameRejectedRecord
+from station.pilot import Pilot
+from station.result import build_result, write_result
+from station.run import ControlLoop
+from station.topics import CMD_WALK, ERROR, INPUT
+
+MODEL = load_robot_model()
+CONFIG = load_station_config()
+INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
+            fps=15.0, state_rate_hz=20.0, deadman_s=0.3)
+W, H = INFO.intrinsics.width, INFO.intrinsics.height
+
+
+def frame(seq: int, jpeg: bytes, T_BC=tuple(MODEL.camera_in_robot(0.0, 0.2).ravel()), odom=(0.0, 0.0, 0.0), stamp=1.0) -> Frame:
+    meta = FrameMeta(seq=seq, stamp=stamp, width=W, height=H, encoding="jpeg", head_yaw=0.0, head_pitch=0.2,
+                     T_BC=tuple(T_BC), odom=tuple(odom), resolution="qvga")
+    return Frame(meta, b"", jpeg)  # the pilot reads the parsed meta only
+
+
+def jpeg(image: np.ndarray) -> bytes:
+    return cv2.imencode(".jpg", image)[1].tobytes()
+
+
+floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+images = st.one_of(
+    st.binary(max_size=64),  # not a JPEG
+    st.builds(lambda w, h: jpeg(np.zeros((h, w, 3), np.uint8)), st.integers(1, 64), st.integers(1, 64)),  # wrong size
+    st.builds(lambda seed: jpeg(np.random.default_rng(seed).integers(0, 256, (H, W, 3), dtype=np.uint8)), st.integers(0, 99)),
+    st.builds(lambda discs: jpeg(_discs(discs)), st.lists(st.tuples(st.integers(0, W), st.integers(0, H), st.integers(1, 60)),
+                                                          max_size=3)),
+)
+
+
+def _discs(discs) -> np.ndarray:
+    """Saturated discs of the object's and the landmarks' kinds of colours: blobs to mis-detect."""
+    image = np.full((H, W, 3), 128, np.uint8)
+    for k, (u, v, r) in enumerate(discs):
+        cv2.circle(image, (u, v), r, [(0, 0, 255), (0, 255, 0), (255, 0, 0)][k % 3], -1)
+    return image
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(images, st.lists(floats, min_size=16, max_size=16), st.lists(floats, min_size=3, max_size=3), floats),
+                min_size=1, max_size=4))
+def test_hostile_frames_metas_and_poses_never_raise(inputs):
+    pilot = Pilot(CONFIG, INFO)
+    for seq, (data, T_BC, odom, stamp) in enumerate(inputs):
+        t = 10.0 + seq
+        for step in (pilot.handle(FrameReceived(t, frame(seq, data, T_BC, odom, stamp))), pilot.handle(Tick(t)),
+                     pilot.handle(Replan(t))):
+            for record in step.outputs:
+                assert type(record) is OUTPUTS[record.TOPIC]
+                record.to_json()
+    assert pilot.mission.outcome in (None, Outcome.FRAME_FAILURES)
+
+
+def test_a_step_that_raises_drops_the_frame_counts_it_and_persistent_failure_ends_the_mission(monkeypatch):
+    pilot = Pilot(CONFIG, INFO)
+    image = jpeg(np.full((H, W, 3), 128, np.uint8))
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(pilot.localizer, "on_frame", singular)
+    n = CONFIG.mission.max_frame_failures
+    for seq in range(n):
+        assert pilot.mission.outcome is None  # the mission goes on until the N-th failure in a row
+        outputs = pilot.handle(FrameReceived(1.0 + 0.1 * seq, frame(seq, image))).outputs
+        assert outputs == [FrameRejectedRecord(1.0 + 0.1 * seq, seq, "localization", "LinAlgError: Singular matrix", seq + 1)]
+    assert pilot.dropped == {"localization": n}
+    assert pilot.mission.outcome is Outcome.FRAME_FAILURES
+    assert pilot.mission.reason == f"localization failed on {n} frames in a row: LinAlgError: Singular matrix"
+
+
+def test_walking_towards_an_object_the_image_shows_too_near_is_cut_to_the_turn():
+    pilot = Pilot(CONFIG, INFO)
+    near = CONFIG.mission.min_image_distance
+    pilot._near = (0.9 * near, 0.0)  # noqa: SLF001 - the last image put the object straight ahead, too near
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.0, 0.0, 0.3)  # noqa: SLF001
+    assert pilot._clear((-0.1, 0.0, 0.3)) == (-0.1, 0.0, 0.3)  # noqa: SLF001 - backing away is kept
+    pilot._near = (0.9 * near, math.pi / 2)  # noqa: SLF001 - object on the left: forward is tangential
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
+    pilot._near = (1.1 * near, 0.0)  # noqa: SLF001
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
+
+
+class FakeLink:
+    """The link's interface, with a scripted inbox and the commands sent recorded."""
+
+    def __init__(self):
+        self.inbox: "queue.Queue" = queue.Queue()
+        self.walks = []
+
+    def take_frames(self):
+        return []
+
+    def send_walk(self, vx, vy, omega, ttl):
+        self.walks.append((vx, vy, omega))
+        return WalkCommand(seq=len(self.walks), vx=vx, vy=vy, omega=omega, ttl=ttl, lease="test")
+
+    def send_head(self, yaw, pitch, speed):
+        return HeadCommand(seq=0, yaw=yaw, pitch=pitch, speed=speed, lease="test")
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        self.t += 0.05
+        return self.t
+
+
+def loop(tmp_path, log):
+    return ControlLoop(CONFIG, FakeLink(), INFO, encode(INFO), log, lambda: None, clock=Clock())
+
+
+def test_a_pilot_that_raises_stops_the_robot_and_ends_as_error_with_a_readable_log(tmp_path, monkeypatch):
+    path = tmp_path / "run.mcap"
+    with McapLog(path) as log:
+        control = loop(tmp_path, log)
+
+        def broken(event):
+            raise RuntimeError("pilot bug")
+
+        monkeypatch.setattr(control.pilot, "handle", broken)
+        summary = control.run()
+    assert summary.outcome == "error" and summary.reason == "station error: RuntimeError: pilot bug"
+    assert control.link.walks[-1] == (0.0, 0.0, 0.0)  # stopped on the way out
+    errors = [m.json() for m in read_log(path, topics={ERROR})]
+    assert len(errors) == 1 and "pilot bug" in errors[0]["traceback"]
+    assert [m.json()["kind"] for m in read_log(path, topics={INPUT})] == ["tick"]  # journalled before it raised
+
+
+def test_a_final_carve_that_raises_still_writes_the_result(tmp_path, monkeypatch):
+    path = tmp_path / "run.mcap"
+    with McapLog(path) as log:
+        control = loop(tmp_path, log)
+        control.pilot.mission.on_interrupt(0.0, "SIGINT")
+
+        def broken(x, P, timeout=60.0):
+            raise MemoryError("grid too large")
+
+        monkeypatch.setattr(control.carving, "finish", broken)
+        summary = control.run()
+    assert summary.outcome == Outcome.INTERRUPTED.value and summary.carver is None
+    assert summary.carving_error == "final carving failed: MemoryError: grid too large"
+    result = json.loads(write_result(build_result(summary, path, {}, "qvga"), tmp_path / "result.json").read_text())
+    assert result["outcome"] == "interrupted" and result["carving_error"] == summary.carving_error
+    assert len(list(read_log(path, topics={CMD_WALK}))) >= 1 and control.pilot.mission.phase is Phase.FINISHED
