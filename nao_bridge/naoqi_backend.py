@@ -21,30 +21,37 @@ Services and calls (NAOqi 2.x API):
 Clocks. Image stamps are the robot's clock. With r_k the bridge time (``time.time()``) at which
 image k was received and s_k its robot stamp, the offset is estimated as
 
-    offset = min_{k in last N frames} (r_k - s_k),    capture stamp (bridge clock) = s_k + offset
+    offset = min_{k in last N frames} (r_k - s_k) - L_min,    capture stamp (bridge clock) = s_k + offset
 
-r_k - s_k = true offset + latency_k with latency_k >= 0, so the minimum is the true offset plus
-the smallest observed capture-to-receive latency: stamps are at most that late, never early, and a
-clock step on either side is forgotten after N frames.
+r_k - s_k = true offset + latency_k with latency_k >= L_min (``camera_latency_min``, the camera's
+known shortest capture-to-receive latency, 0 if unknown), so the estimate is late by the smallest
+observed excess latency: stamps are never early, and a clock step on either side is forgotten after
+N frames.
 
-The head angles, camera transform and odometry of a frame are read right after its image arrives
-(NAOqi does not return them with the image): with the head still, they are those of the capture.
+Capture-time kinematics. NAOqi does not return the joint angles with an image, and the image
+arrives tens of ms after its capture, while the torso rolls and the head turns. A sampler thread
+reads ``getAngles``, ``getTransform`` and ``getRobotPosition`` at ``kinematics_rate`` into a
+:class:`KinematicsHistory` (``nao_bridge.capture_kinematics``), and each frame's head angles, T_BC
+and odometry are interpolated to its capture stamp. A frame whose stamp is outside the history (or
+in a gap of it) is dropped and counted by reason in ``kinematics_dropped``.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Deque, List, Literal, Optional, Sequence, Union
+from typing import Any, Counter, Deque, List, Literal, Optional, Sequence, Union
 
 import cv2
 import numpy as np
 import qi
 
 from nao_bridge.backend import RobotBackend
+from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
 from nao_core.config import bounds
 from nao_core.naoqi_api import (
     BATTERY_KEY,
@@ -73,6 +80,10 @@ class NaoqiParams:
     rest_on_exit: bool = True
     use_sensors: bool = True  # odometry and head angles from sensors rather than commands
     clock_window: int = field(default=100, metadata=bounds(1, 100000))  # frames in the offset minimum
+    camera_latency_min: float = field(default=0.0, metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
+    kinematics_rate: float = field(default=100.0, metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
+    kinematics_history: float = field(default=2.0, metadata=bounds(0.2, 60.0))  # s of samples kept
+    kinematics_max_gap: float = field(default=0.1, metadata=bounds(0.001, 5.0))  # s, widest gap interpolated over
     client_name: str = "nao_active_recon"
 
 
@@ -91,15 +102,16 @@ def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes,
 
 
 class ClockOffset:
-    """Robot clock -> bridge clock: minimum of (receive time - robot stamp) over a window."""
+    """Robot clock -> bridge clock: minimum of (receive time - robot stamp) over a window, less ``latency_min``."""
 
-    def __init__(self, window: int):
+    def __init__(self, window: int, latency_min: float = 0.0):
         self._samples: Deque[float] = collections.deque(maxlen=window)
+        self._latency_min = latency_min
 
     def update(self, robot_stamp: float, received: float) -> float:
         """Record one image; return its capture time on the bridge clock."""
         self._samples.append(received - robot_stamp)
-        return robot_stamp + min(self._samples)
+        return robot_stamp + min(self._samples) - self._latency_min
 
 
 class NaoqiBackend(RobotBackend):
@@ -118,11 +130,17 @@ class NaoqiBackend(RobotBackend):
         self._camera: Optional[str] = None
         self._fall_links: List[tuple] = []
         self._fallen = threading.Event()
-        self._clock = ClockOffset(params.clock_window)
+        self._clock = ClockOffset(params.clock_window, params.camera_latency_min)
         self._last_stamp: Optional[tuple] = None
         self._closed = False
         self._close_lock = threading.Lock()
         self.duplicates = 0
+        period = 1.0 / params.kinematics_rate
+        self.kinematics = KinematicsHistory(max(2, math.ceil(params.kinematics_history / period)), params.kinematics_max_gap)
+        self.kinematics_dropped: Counter[str] = collections.Counter()  # frames without capture-time kinematics, by reason
+        self._sampler: Optional[threading.Thread] = None
+        self._stop_sampling = threading.Event()
+        self._last_drop_log = -math.inf
 
     def start(self) -> None:
         session = qi.Session()
@@ -145,6 +163,9 @@ class NaoqiBackend(RobotBackend):
             self._fall_links.append((subscriber, link))
             if self.memory.getData(key):
                 self._fallen.set()
+        self._sample_kinematics()  # the first sample precedes every image; a failure here fails the start
+        self._sampler = threading.Thread(target=self._sample_loop, name="naoqi-kinematics", daemon=True)
+        self._sampler.start()
         self._camera = self.video.subscribeCamera(
             self.params.client_name,
             TOP_CAMERA,
@@ -153,6 +174,45 @@ class NaoqiBackend(RobotBackend):
             int(round(self.fps)),
         )
         log.info("NAOqi at %s: camera %s %s at %g fps", self.url, self.resolution, self.params.color_space, self.fps)
+
+    def _sample_kinematics(self) -> None:
+        """One sample of head angles, camera transform and odometry, stamped mid-way through the reads."""
+        sensors = self.params.use_sensors
+        before = time.time()
+        yaw, pitch = self.motion.getAngles(HEAD_JOINTS, sensors)
+        T_nao = np.asarray(self.motion.getTransform("CameraTop", FRAME_ROBOT, sensors), float).reshape(4, 4)
+        odom = self.motion.getRobotPosition(sensors)
+        after = time.time()
+        values = np.concatenate([[yaw, pitch], T_nao.ravel(), np.asarray(odom, float)[:3]])
+        if not np.isfinite(values).all():
+            raise ValueError(f"non-finite reading: head {yaw}, {pitch}, odometry {odom}, camera transform {T_nao.tolist()}")
+        self.kinematics.add(KinematicSample(
+            0.5 * (before + after), (float(yaw), float(pitch)), T_nao, (float(odom[0]), float(odom[1]), float(odom[2]))
+        ))
+
+    def _sample_loop(self) -> None:
+        """Sample at ``kinematics_rate`` until close; a failing read is logged (at most once a second) and retried."""
+        period = 1.0 / self.params.kinematics_rate
+        due = time.monotonic()
+        last_error = -math.inf
+        while True:
+            try:
+                self._sample_kinematics()
+            except Exception as exc:  # noqa: BLE001 - a lost robot link must not kill the sampler
+                if time.monotonic() - last_error > 1.0:
+                    last_error = time.monotonic()
+                    log.error("NAOqi kinematics sample failed: %s", exc)
+            due += period
+            wait = due - time.monotonic()
+            if wait < 0.0:  # behind (slow calls): sample again at once and keep the period from now
+                due, wait = time.monotonic(), 0.0
+            if self._stop_sampling.wait(wait):
+                return
+
+    def _stop_sampler(self) -> None:
+        self._stop_sampling.set()
+        if self._sampler is not None:
+            self._sampler.join(timeout=5.0)
 
     def _on_fall_event(self, value: Any) -> None:
         if value:
@@ -170,25 +230,33 @@ class NaoqiBackend(RobotBackend):
                 robot_stamp = (int(image[4]), int(image[5]))
                 if robot_stamp != self._last_stamp:
                     self._last_stamp = robot_stamp
-                    return self._frame(image, robot_stamp[0] + 1e-6 * robot_stamp[1], received)
-                self.duplicates += 1
+                    frame = self._frame(image, robot_stamp[0] + 1e-6 * robot_stamp[1], received)
+                    if frame is not None:
+                        return frame
+                else:
+                    self.duplicates += 1
             if time.monotonic() + poll > deadline:
                 return None
             time.sleep(poll)
 
-    def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> CameraFrame:
-        bgr = image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6])
+    def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> Optional[CameraFrame]:
+        """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
         stamp = self._clock.update(robot_stamp, received)
-        yaw, pitch = self.motion.getAngles(HEAD_JOINTS, self.params.use_sensors)
-        T_nao = np.asarray(self.motion.getTransform("CameraTop", FRAME_ROBOT, self.params.use_sensors), float)
-        odom = self.motion.getRobotPosition(self.params.use_sensors)
+        # a capture newer than the newest sample: wait for the next samples (a few periods at most)
+        kin = self.kinematics.wait_at(stamp, 3.0 / self.params.kinematics_rate)
+        if isinstance(kin, str):
+            self.kinematics_dropped[kin] += 1
+            if time.monotonic() - self._last_drop_log > 1.0:  # at most once a second
+                self._last_drop_log = time.monotonic()
+                log.warning("NAOqi frame at %.3f dropped: %s; dropped so far %s", stamp, kin, dict(self.kinematics_dropped))
+            return None
         return CameraFrame(
-            image=bgr,
+            image=image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6]),
             stamp=stamp,
-            head_yaw=float(yaw),
-            head_pitch=float(pitch),
-            T_BC=nao_to_optical(T_nao.reshape(4, 4)),
-            odom=(float(odom[0]), float(odom[1]), float(odom[2])),
+            head_yaw=kin.head[0],
+            head_pitch=kin.head[1],
+            T_BC=nao_to_optical(kin.T),
+            odom=kin.odom,
         )
 
     def walk(self, v: float, vy: float, omega: float) -> None:
@@ -219,7 +287,7 @@ class NaoqiBackend(RobotBackend):
                 self._closed = True
                 return
             self._closed = True
-        steps = [("stopMove", self.motion.stopMove)]
+        steps = [("stopMove", self.motion.stopMove), ("stop the kinematics sampler", self._stop_sampler)]
         steps += [("disconnect fall signal", lambda s=s, k=k: s.signal.disconnect(k)) for s, k in self._fall_links]
         if self._camera is not None:
             steps.append(("unsubscribe camera", lambda: self.video.unsubscribe(self._camera)))

@@ -80,6 +80,16 @@ class Scenario:
     def world_points(self) -> np.ndarray:
         return np.vstack([p.world_points(self.position, self.yaw) for p in self.parts])
 
+    def contains(self, points_W: np.ndarray) -> np.ndarray:
+        """Bool per point (N x 3, world): inside one of the parts (the exact truth of the rendered object)."""
+        points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)
+        local = points_W.copy()
+        local[:, :2] = (points_W[:, :2] - np.asarray(self.position)) @ rot2(self.yaw)  # world -> object frame
+        inside = np.zeros(len(points_W), dtype=bool)
+        for part in self.parts:
+            inside |= part.contains(local)
+        return inside
+
     @cached_property  # the scenario is frozen; SimWorld.truth() asks at every state tick
     def height(self) -> float:
         return float(self.world_points()[:, 2].max())
@@ -103,7 +113,8 @@ class Sway:
 
     frequency: float = field(metadata=bounds(0.0, 10.0))  # Hz, one lateral cycle per two steps
     lateral: float = field(metadata=bounds(0.0, 0.1))  # m, amplitude at full speed
-    roll: float = field(metadata=bounds(0.0, 0.3))  # rad
+    roll: float = field(metadata=bounds(0.0, 0.3))  # rad, at the lateral frequency
+    pitch: float = field(metadata=bounds(0.0, 0.3))  # rad, at the step frequency (twice the lateral one)
     bob: float = field(metadata=bounds(0.0, 0.05))  # m
     reported_fraction: float = field(metadata=bounds(0.0, 1.0))  # share of the sway the joint sensors report
 
@@ -120,12 +131,20 @@ class Dynamics:
     battery_drain_idle: float = field(metadata=bounds(0.0, 0.1))  # fraction per s
     battery_drain_walking: float = field(metadata=bounds(0.0, 0.1))  # extra fraction per s while walking
     fallen_camera_height: float = field(metadata=bounds(0.0, 1.0))  # m, torso thickness lying face down
+    history: float = field(metadata=bounds(0.1, 30.0))  # s of past kinematics kept (render / kinematics_at)
 
 
 @dataclass(frozen=True)
 class Noise:
     pixel_sigma: float = field(metadata=bounds(0.0, 50.0))  # Gaussian image noise, grey levels
     gain_sigma: float = field(metadata=bounds(0.0, 0.5))  # per-frame exposure gain jitter
+    latency: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # s, stand-in capture-to-delivery range
+    drop_rate: float = field(metadata=bounds(0.0, 0.9))  # stand-in: share of frames never delivered
+    clock_offset: float = field(metadata=bounds(-1e9, 1e9))  # s, stand-in robot clock minus bridge clock
+
+    def __post_init__(self) -> None:
+        if self.latency[0] > self.latency[1]:
+            raise ValueError(f"noise.latency is a [low, high] range, got {list(self.latency)}")
 
 
 @dataclass(frozen=True)

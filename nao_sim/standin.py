@@ -7,9 +7,16 @@ against it (``url``). Every call is recorded as ``Call(time.time(), "Service.met
 ``calls``; tests assert on that record (e.g. the time of the ``ALMotion.stopMove`` after the
 station went silent). ``fall()`` makes the world fall and fires the ALMemory fall signals.
 
-The camera behaves like NAOqi's: a new image every 1/fps on the robot's clock, which runs
-``clock_offset`` seconds ahead of the bridge's; asking sooner returns the same image with the same
-stamp (a duplicate); the buffer is latin-1 text in BGR or packed YUYV, as requested.
+The camera behaves like NAOqi's. Image k is captured at t_k = t_0 + k / fps (t_0 the
+subscription) and can be served only from t_k + L_k on, with a latency L_k ~ U(latency) drawn from
+``(seed, k)``; with probability ``drop_rate`` (same draw) it is never served. ``getImageRemote``
+returns the newest image that is due, rendered with the world as it was at t_k
+(``SimWorld.render(at=t_k)``), so the head angles and camera transform read after it has arrived
+are those of a later instant, as on a real NAO. Asking again before a newer image is due returns
+the same image with the same stamp (a duplicate). The stamp is t_k on the robot's clock, which
+runs ``clock_offset`` seconds ahead of the bridge's; the buffer is latin-1 text in BGR or packed
+YUYV (kYUV422 = 9, 2 bytes a pixel), as requested. Latency, drop rate and clock offset default to
+``noise`` in config/sim.yaml; all draws depend on the seed and the frame index only.
 
     python -m nao_sim.standin --scenario can      # serve until Ctrl-C, print the URL
 """
@@ -22,9 +29,10 @@ import math
 import sys
 import threading
 import time
-from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Union
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import cv2
+import numpy as np
 import qi
 
 from nao_core.naoqi_api import (
@@ -126,13 +134,28 @@ class ALMotion:
         self._world.stop_walking()
 
 
+class CameraDelivery(NamedTuple):
+    """When the stand-in's camera serves its frames: latency range (s), drop rate, robot clock offset (s), seed."""
+
+    latency: Tuple[float, float]
+    drop_rate: float
+    clock_offset: float
+    seed: int
+
+    def frame(self, k: int) -> Tuple[float, bool]:
+        """(latency of frame k, whether it is dropped): a function of (seed, k) only."""
+        rng = np.random.default_rng([self.seed, k])
+        return float(rng.uniform(*self.latency)), bool(rng.random() < self.drop_rate)
+
+
 class ALVideoDevice:
-    def __init__(self, world: SimWorld, record: _Recorder, clock_offset: float):
+    def __init__(self, world: SimWorld, record: _Recorder, delivery: CameraDelivery):
         self._world = world
         self._record = record
-        self._clock_offset = clock_offset
+        self._delivery = delivery
         self._subscribers: Dict[str, Dict[str, Any]] = {}
         self._lock = threading.Lock()
+        self.captures: List[Tuple[float, float]] = []  # (robot stamp, world capture time) of every image served
 
     def subscribeCamera(self, name: str, camera: int, resolution: int, color_space: int, fps: int) -> str:
         self._record("ALVideoDevice.subscribeCamera", name, camera, resolution, color_space, fps)
@@ -145,7 +168,10 @@ class ALVideoDevice:
             )
         with self._lock:
             handle = f"{name}_{len(self._subscribers)}"
-            self._subscribers[handle] = {"color_space": color_space, "period": 1.0 / fps, "image": None, "due": 0.0}
+            self._subscribers[handle] = {
+                "color_space": color_space, "period": 1.0 / fps, "start": time.time(), "index": -1, "image": None,
+                "pending": {},  # frame index -> (image, (robot stamp, capture)) captured (rendered), not yet due
+            }
         return handle
 
     def getImageRemote(self, handle: str) -> Optional[list]:
@@ -155,21 +181,41 @@ class ALVideoDevice:
             if sub is None:
                 raise RuntimeError(f"ALVideoDevice.getImageRemote: unknown handle {handle!r}")
             now = time.time()
-            if sub["image"] is None or now >= sub["due"]:
-                sub["image"] = self._image(sub["color_space"])
-                due = sub["due"] + sub["period"]
-                sub["due"] = due if due >= now else now + sub["period"]  # keep the cadence unless behind
-            return sub["image"]
+            captured = math.floor((now - sub["start"]) / sub["period"])
+            if captured > sub["index"] and captured not in sub["pending"] and not self._delivery.frame(captured)[1]:
+                # the camera captures it now: render it before it is due, so the reply is not slowed by the render
+                sub["pending"][captured] = self._image(sub["start"] + captured * sub["period"], sub["color_space"])
+            k = self._newest_due(sub, now)
+            if k is not None and k > sub["index"]:
+                image, capture = sub["pending"].get(k) or self._image(sub["start"] + k * sub["period"], sub["color_space"])
+                sub["index"], sub["image"] = k, image
+                sub["pending"] = {i: p for i, p in sub["pending"].items() if i > k}
+                self.captures.append(capture)
+            return sub["image"]  # None until the first image is due, as NAOqi before its first capture
 
-    def _image(self, color_space: int) -> list:
-        frame = self._world.render()
+    def _newest_due(self, sub: Dict[str, Any], now: float) -> Optional[int]:
+        """The newest frame index captured since the subscription, not dropped, whose latency has passed."""
+        newest = math.floor((now - sub["start"]) / sub["period"])
+        oldest = max(newest - math.ceil(self._delivery.latency[1] / sub["period"]) - 1, 0)
+        for k in range(newest, oldest - 1, -1):
+            latency, dropped = self._delivery.frame(k)
+            if not dropped and sub["start"] + k * sub["period"] + latency <= now:
+                return k
+        return None
+
+    def _image(self, capture: float, color_space: int) -> Tuple[list, Tuple[float, float]]:
+        """The NAOqi image of a capture at world time ``capture``, and its (robot stamp, capture stamp)."""
+        frame = self._world.render(at=capture)
         pixels = frame.image if color_space == COLOR_SPACE_IDS["bgr"] else cv2.cvtColor(frame.image, cv2.COLOR_BGR2YUV_YUYV)
         height, width, layers = pixels.shape
-        robot_stamp = frame.stamp + self._clock_offset
+        robot_stamp = frame.stamp + self._delivery.clock_offset
         seconds = math.floor(robot_stamp)
         micros = int(round((robot_stamp - seconds) * 1e6))
+        if micros == 1_000_000:
+            seconds, micros = seconds + 1, 0
         buffer = pixels.tobytes().decode("latin-1")
-        return [width, height, layers, color_space, seconds, micros, buffer, TOP_CAMERA, 0.5, 0.4, -0.5, -0.4]
+        image = [width, height, layers, color_space, seconds, micros, buffer, TOP_CAMERA, 0.5, 0.4, -0.5, -0.4]
+        return image, (seconds + 1e-6 * micros, frame.stamp)
 
     def releaseImage(self, handle: str) -> bool:
         self._record("ALVideoDevice.releaseImage", handle)
@@ -233,14 +279,33 @@ class ALAutonomousLife:
 class StandIn:
     """NAOqi services for ``world`` on a loopback libqi session."""
 
-    def __init__(self, world: SimWorld, clock_offset: float = 1000.0, listen: str = "tcp://127.0.0.1:0"):
+    def __init__(
+        self,
+        world: SimWorld,
+        clock_offset: Optional[float] = None,
+        listen: str = "tcp://127.0.0.1:0",
+        latency: Optional[Tuple[float, float]] = None,
+        drop_rate: Optional[float] = None,
+    ):
+        """Camera delivery defaults to ``world.config.noise``; the seed is the world's."""
+        noise = world.config.noise
+        latency = noise.latency if latency is None else (float(latency[0]), float(latency[1]))
+        drop_rate = noise.drop_rate if drop_rate is None else float(drop_rate)
+        if not 0.0 <= latency[0] <= latency[1] < world.config.dynamics.history:
+            raise ValueError(f"stand-in latency {latency}: expected 0 <= low <= high < dynamics.history "
+                             f"({world.config.dynamics.history} s, how far back the world can render)")
+        if not 0.0 <= drop_rate < 1.0:
+            raise ValueError(f"stand-in drop_rate {drop_rate}: expected in [0, 1)")
+        self.delivery = CameraDelivery(latency, drop_rate, noise.clock_offset if clock_offset is None else clock_offset,
+                                       world.seed)
         self.world = world
         self.listen = listen
         self._record = _Recorder()
         self.memory = ALMemory(world, self._record)
+        self.video = ALVideoDevice(world, self._record, self.delivery)
         self.services = {
             "ALMotion": ALMotion(world, self._record),
-            "ALVideoDevice": ALVideoDevice(world, self._record, clock_offset),
+            "ALVideoDevice": self.video,
             "ALMemory": self.memory,
             "ALRobotPosture": ALRobotPosture(self._record),
             "ALAutonomousLife": ALAutonomousLife(self._record),
@@ -292,10 +357,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--resolution", default="vga")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--listen", default="tcp://127.0.0.1:9559")
+    parser.add_argument("--latency", type=float, nargs=2, metavar=("LOW", "HIGH"), help="s, capture to delivery")
+    parser.add_argument("--drop-rate", type=float, help="share of frames never served")
+    parser.add_argument("--clock-offset", type=float, help="s, robot clock minus bridge clock")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     world = SimWorld(args.scenario, load_robot_model(), resolution=args.resolution, seed=args.seed)
-    with StandIn(world, listen=args.listen) as standin:
+    try:
+        standin = StandIn(world, args.clock_offset, args.listen, args.latency, args.drop_rate)
+    except ValueError as exc:
+        parser.error(str(exc))
+    with standin:
         print(f"NAOqi stand-in serving {args.scenario!r} at {standin.url}", flush=True)
         try:
             threading.Event().wait()

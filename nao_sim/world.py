@@ -19,25 +19,37 @@ timeline alone, not of how often it is queried). One step:
 * head joints move towards their targets at ``speed_fraction * max_speed`` each, then
   ``robot.head.clamp``;
 * torso sway while walking, of amplitude a = max(|v|/v_max, |vy|/vy_max, |omega|/omega_max) <= 1 and
-  phase phi advancing at 2 pi f: the camera is moved by
-  ``Trans(0, a L sin phi, a B (cos 2 phi - 1) / 2) Rx(a rho sin phi)`` in the robot frame; the
-  reported camera transform contains ``reported_fraction`` of it (joint sensors see most of it);
+  phase phi advancing at 2 pi f (f the lateral frequency, one cycle per two steps): the camera is
+  moved about the feet by
+
+      Trans(0, a L sin phi, a B (cos 2 phi - 1) / 2) Rx(a rho sin phi) Ry(a psi sin 2 phi)
+
+  in the robot frame (lateral shift L, roll rho at f, pitch psi and bob B at the step frequency 2 f);
+  the reported camera transform contains ``reported_fraction`` of it (the joint sensors see most of it);
 * a fallen robot lies face down (body pitched by 90 degrees about the feet, camera
   ``fallen_camera_height`` above the floor) and ignores walk commands;
 * the battery drains at a constant rate, faster while walking.
+
+Past kinematics. After every step (and every instantaneous change: teleport, fall, stand-up) the
+world appends its kinematic state (pose, odometry, head, sway amplitude and phase, fall flag) to a
+history of ``dynamics.history`` seconds. The state at time t is the last entry at or before t (the
+state a real robot had then, on the step grid), so ``render(at=t)`` draws a frame captured in the
+past (the NAOqi stand-in serves frames late) and ``kinematics_at(t)`` gives the sensor readings at
+that instant (the truth the bridge's capture-time interpolation is checked against).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import numbers
 import threading
 import time
-from typing import Callable, Optional, Tuple, Union
+from typing import Callable, Deque, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
-from nao_core.geometry import Pose, planar_transform, rot_x
+from nao_core.geometry import Pose, planar_transform, rot_x, rot_y
 from nao_core.landmark_map import load_landmark_map
 from nao_core.records import CameraFrame, RobotState
 from nao_core.robot_model import RobotModel, nao_to_optical
@@ -49,7 +61,25 @@ MOVING = 1e-3  # sway amplitude above which the robot counts as walking
 FACE_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # Ry(+90 deg): up becomes forward
 
 
+class _Kinematic(NamedTuple):
+    """The world's moving state at one instant (an entry of the history)."""
 
+    time: float
+    pose: Pose
+    odom: Pose
+    head: Tuple[float, float]
+    amplitude: float
+    phase: float
+    fallen: bool
+
+
+class Kinematics(NamedTuple):
+    """What the robot's sensors report at ``stamp``: ALMotion getAngles, getTransform, getRobotPosition."""
+
+    stamp: float
+    head: Tuple[float, float]  # (HeadYaw, HeadPitch), rad
+    T_BC_nao: np.ndarray  # 4x4 camera in FRAME_ROBOT, NAO camera axes (reported: sway x reported_fraction)
+    odom: Pose
 
 
 def _integrate(pose: np.ndarray, dx: float, dy: float, dtheta: float) -> None:
@@ -114,6 +144,8 @@ class SimWorld:
         self._battery = dyn.battery_initial
         self._frames = 0
         self._last_render: Optional[Tuple[float, np.ndarray]] = None
+        self._history: Deque[_Kinematic] = collections.deque(maxlen=max(2, int(math.ceil(dyn.history / dyn.timestep)) + 1))
+        self._remember()
 
     def _start_pose(self) -> Pose:
         sc = self.scenario
@@ -131,13 +163,37 @@ class SimWorld:
         dt = self._dyn.timestep
         # the tolerance absorbs rounding in the clock's sums, so a step is never lost to polling
         steps = max(math.floor((self._clock() - self._start_time) / dt + 1e-6) - self._steps, 0)
-        if self._at_rest():  # nothing moves: only the battery drains, in one go
+        if self._at_rest():  # nothing moves: only the battery drains, in one go (the history holds)
             self._battery = max(0.0, self._battery - steps * dt * self._dyn.battery_drain_idle)
+            self._steps += steps
+            self._time = self._start_time + self._steps * dt
         else:
             for _ in range(steps):
                 self._step(dt)
-        self._steps += steps
-        self._time = self._start_time + self._steps * dt
+                self._steps += 1
+                self._time = self._start_time + self._steps * dt
+                self._remember()
+
+    def _remember(self) -> None:
+        """Append the current kinematic state to the history (caller holds the lock)."""
+        self._history.append(_Kinematic(
+            self._time, _pose_tuple(self._pose), _pose_tuple(self._odom), (float(self._head[0]), float(self._head[1])),
+            self._amplitude, self._phase, self._fallen,
+        ))
+
+    def _state_at(self, t: Optional[float]) -> _Kinematic:
+        """The kinematic state at world time ``t`` (now if None): the last history entry at or before it."""
+        if t is None:
+            return self._history[-1]
+        if not math.isfinite(t) or t >= self._time + self._dyn.timestep:  # within the current step is now
+            raise ValueError(f"time {t!r} is not in the past of the world (now {self._time:.3f})")
+        for entry in reversed(self._history):
+            if entry.time <= t + 1e-9:
+                return entry
+        raise ValueError(
+            f"time {t:.3f} is {self._history[0].time - t:.3f} s before the kept history "
+            f"(dynamics.history = {self._dyn.history} s)"
+        )
 
     def _at_rest(self) -> bool:
         return not (self._command.any() or self._velocity.any() or self._amplitude) and bool(
@@ -175,21 +231,21 @@ class SimWorld:
         self._head[:] = self.robot.head.clamp(*self._head)
         self._battery = max(0.0, self._battery - dt * (dyn.battery_drain_idle + walking * dyn.battery_drain_walking))
 
-    def _body(self, fraction: float) -> np.ndarray:
+    def _body(self, state: _Kinematic, fraction: float) -> np.ndarray:
         """Torso motion applied to the head kinematics: the fall, else ``fraction`` of the sway."""
-        if self._fallen:
+        if state.fallen:
             T = np.eye(4)
             T[:3, :3] = FACE_DOWN
             T[2, 3] = self._dyn.fallen_camera_height + self.robot.camera.offset[0]  # camera at that height
             return T
-        sway, a, phi = self._dyn.sway, self._amplitude * fraction, self._phase
-        T = rot_x(a * sway.roll * math.sin(phi))
+        sway, a, phi = self._dyn.sway, state.amplitude * fraction, state.phase
+        T = rot_x(a * sway.roll * math.sin(phi)) @ rot_y(a * sway.pitch * math.sin(2.0 * phi))
         T[1, 3] = a * sway.lateral * math.sin(phi)
         T[2, 3] = a * sway.bob * 0.5 * (math.cos(2.0 * phi) - 1.0)
         return T
 
-    def _camera_nao(self, fraction: float) -> np.ndarray:
-        return self._body(fraction) @ self.robot.camera_in_robot_nao(*self._head)
+    def _camera_nao(self, state: _Kinematic, fraction: float) -> np.ndarray:
+        return self._body(state, fraction) @ self.robot.camera_in_robot_nao(*state.head)
 
     # -- commands ------------------------------------------------------------------------------
 
@@ -225,12 +281,14 @@ class SimWorld:
             self._command[:] = 0.0
             self._velocity[:] = 0.0
             self._amplitude = 0.0
+            self._remember()
 
     def stand_up(self) -> None:
         """Recover from a fall (as ALRobotPosture.goToPosture would), where the robot lies."""
         with self._lock:
             self._advance()
             self._fallen = False
+            self._remember()
 
     def teleport(self, pose: Pose, head: Optional[Tuple[float, float]] = None) -> None:
         """Test hook: put the robot at the true ``pose`` at rest (head at ``head``); odometry is untouched."""
@@ -243,6 +301,7 @@ class SimWorld:
             self._amplitude = 0.0
             if head is not None:
                 self._head[:] = self._head_target[:] = self.robot.head.clamp(*head)
+            self._remember()
 
     # -- readings ------------------------------------------------------------------------------
 
@@ -305,21 +364,37 @@ class SimWorld:
         """Reported camera pose in the robot frame, NAO convention (ALMotion.getTransform("CameraTop", 2, True))."""
         with self._lock:
             self._advance()
-            return self._camera_nao(self._dyn.sway.reported_fraction)
+            return self._camera_nao(self._state_at(None), self._dyn.sway.reported_fraction)
 
-    def render(self) -> CameraFrame:
-        """A camera frame with the head angles, reported T_BC (optical) and odometry at its capture time."""
+    def kinematics_at(self, t: float) -> Kinematics:
+        """The sensor readings at past world time ``t`` (within ``dynamics.history``); ValueError outside it."""
         with self._lock:
             self._advance()
-            stamp, head = self._time, self._head.copy()
-            T_BC = nao_to_optical(self._camera_nao(self._dyn.sway.reported_fraction))
-            T_WC = planar_transform(*self._pose) @ nao_to_optical(self._camera_nao(1.0))
-            odom = _pose_tuple(self._odom)
+            state = self._state_at(t)
+            T = self._camera_nao(state, self._dyn.sway.reported_fraction)
+            stamp = self._grid(t)
+        return Kinematics(stamp, state.head, T, state.odom)
+
+    def _grid(self, t: float) -> float:
+        """``t`` rounded down to the step grid (the instant whose state holds at t), at most now."""
+        dt = self._dyn.timestep
+        return min(self._start_time + math.floor((t - self._start_time) / dt + 1e-6) * dt, self._time)
+
+    def render(self, at: Optional[float] = None) -> CameraFrame:
+        """A camera frame captured now, or at past world time ``at`` (within ``dynamics.history``), with
+        the head angles, reported T_BC (optical) and odometry of its capture; ValueError outside the history."""
+        with self._lock:
+            self._advance()
+            state = self._state_at(at)
+            stamp = self._time if at is None else self._grid(at)
+            T_BC = nao_to_optical(self._camera_nao(state, self._dyn.sway.reported_fraction))
+            T_WC = planar_transform(*state.pose) @ nao_to_optical(self._camera_nao(state, 1.0))
             self._frames += 1
             index = self._frames
             self._last_render = (stamp, T_WC)
         image = self.renderer.render(T_WC, index)
-        return CameraFrame(image=image, stamp=stamp, head_yaw=float(head[0]), head_pitch=float(head[1]), T_BC=T_BC, odom=odom)
+        yaw, pitch = state.head
+        return CameraFrame(image=image, stamp=stamp, head_yaw=yaw, head_pitch=pitch, T_BC=T_BC, odom=state.odom)
 
     def truth(self) -> dict:
         """Ground truth, JSON-able: robot, odometry origin, camera at the last render, object, scenario."""

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import math
+import threading
 import time
 
 import cv2
 import numpy as np
 import pytest
 
+from nao_bridge.capture_kinematics import AFTER, BEFORE, GAP, KinematicSample, KinematicsHistory, interpolate_transform
 from nao_bridge.naoqi_backend import (
     COLOR_SPACE_IDS,
     ClockOffset,
@@ -16,12 +19,22 @@ from nao_bridge.naoqi_backend import (
     NaoqiParams,
     image_to_bgr,
 )
+from nao_core.geometry import rot_x, rot_z
 from nao_core.robot_model import load_robot_model, nao_to_optical
-from nao_sim.standin import StandIn
+from nao_sim.scenarios import load_sim_config
+from nao_sim.standin import CameraDelivery, StandIn
 from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
+SIM = load_sim_config()
 BGR, YUV422 = COLOR_SPACE_IDS["bgr"], COLOR_SPACE_IDS["yuv422"]
+FPS = 15.0
+
+
+def rotation_angle(A: np.ndarray, B: np.ndarray) -> float:
+    """Angle (rad) of the rotation between two transforms."""
+    rotvec, _ = cv2.Rodrigues(A[:3, :3].T @ B[:3, :3])
+    return float(np.linalg.norm(rotvec))
 
 
 def test_image_buffer_as_bytes_bytearray_or_latin1_text():
@@ -71,6 +84,50 @@ def test_clock_offset_forgets_a_clock_step_after_the_window():
     assert stamp == pytest.approx(130.01)  # capture time 130 plus the 10 ms latency
 
 
+def test_clock_offset_subtracts_the_known_minimum_latency():
+    clock = ClockOffset(window=10, latency_min=0.03)
+    assert clock.update(100.0, 100.0 - 50.0 + 0.035) == pytest.approx(50.005)  # 35 ms latency, 30 of them known
+
+
+# -- capture-time interpolation ------------------------------------------------------------------
+
+
+def sample(stamp: float, yaw: float, T: np.ndarray, theta: float = 0.0) -> KinematicSample:
+    return KinematicSample(stamp, (yaw, -yaw), T, (stamp, 2.0 * stamp, theta))
+
+
+def test_transform_interpolation_is_the_rotation_geodesic_and_the_translation_lerp():
+    T_a, T_b = rot_x(0.2) @ rot_z(0.1), rot_x(0.2) @ rot_z(0.9)
+    T_a[:3, 3], T_b[:3, 3] = (0.0, 0.0, 0.5), (0.1, -0.2, 0.3)
+    for alpha in (0.0, 0.25, 0.5, 1.0):
+        expected = rot_x(0.2) @ rot_z(0.1 + 0.8 * alpha)  # both about the same axis: the angle is lerped
+        T = interpolate_transform(T_a, T_b, alpha)
+        np.testing.assert_allclose(T[:3, :3], expected[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(T[:3, 3], (1 - alpha) * T_a[:3, 3] + alpha * T_b[:3, 3], atol=1e-12)
+
+
+def test_history_interpolates_between_samples_and_names_stamps_it_cannot_serve():
+    history = KinematicsHistory(size=5, max_gap=0.05)
+    for k in range(6):  # 0.00 .. 0.05, then a gap to 0.20: the 5 kept are 0.02 .. 0.05 and 0.20
+        history.add(sample(0.01 * k, 0.1 * k, rot_z(0.1 * k), theta=math.pi - 0.01 + 0.01 * k))
+    history.add(sample(0.20, 2.0, rot_z(2.0)))
+    history.add(sample(0.19, 9.0, rot_z(9.0)))  # older than the newest: ignored
+    kin = history.at(0.035)
+    assert kin.head == pytest.approx((0.35, -0.35)) and kin.odom[:2] == pytest.approx((0.035, 0.07))
+    assert kin.odom[2] == pytest.approx(math.remainder(math.pi - 0.01 + 0.035, 2 * math.pi))  # across +-pi
+    assert rotation_angle(kin.T, rot_z(0.35)) < 1e-12
+    assert history.at(0.02).head == pytest.approx((0.2, -0.2))  # exactly on a sample
+    assert history.at(0.015) == BEFORE and history.at(0.21) == AFTER and history.at(0.1) == GAP
+    assert history.wait_at(0.21, timeout=0.0) == AFTER
+    late = threading.Timer(0.01, history.add, args=(sample(0.22, 2.2, rot_z(2.2)),))
+    late.start()
+    assert history.wait_at(0.21, timeout=30.0).head == pytest.approx((2.1, -2.1))  # woken by the new sample
+    late.join()
+
+
+# -- the backend against the stand-in --------------------------------------------------------------
+
+
 @pytest.fixture
 def standin():
     world = SimWorld("can", MODEL, resolution="qvga", seed=2)
@@ -79,7 +136,7 @@ def standin():
 
 
 def backend_for(standin: StandIn, **changes) -> NaoqiBackend:
-    return NaoqiBackend(standin.url, MODEL, dataclasses.replace(NaoqiParams(), **changes), "qvga", 15.0)
+    return NaoqiBackend(standin.url, MODEL, dataclasses.replace(NaoqiParams(), **changes), "qvga", FPS)
 
 
 def test_start_prepares_the_robot_and_close_releases_it(standin):
@@ -112,24 +169,136 @@ def test_options_turn_off_autonomous_life_posture_and_rest(standin):
 
 def test_frames_are_new_images_with_the_camera_pose_and_stamp_of_their_capture(standin):
     world = standin.world
-    world.set_head(0.4, -0.2, 1.0)
-    time.sleep(0.3)
-    backend = backend_for(standin)
+    world.teleport(world.true_pose(), head=(0.4, -0.2))
+    backend = backend_for(standin, camera_latency_min=SIM.noise.latency[0])
     backend.start()
     renders = []
     render = world.render
-    world.render = lambda: renders.append(render()) or renders[-1]
-    frames = [backend.grab_frame(1.0) for _ in range(8)]
+    world.render = lambda at=None: renders.append(render(at)) or renders[-1]
+    grabs = [(backend.grab_frame(1.0), standin.video.captures[-1][1]) for _ in range(8)]  # served: the last capture
     backend.close()
-    assert len({f.stamp for f in frames}) == len(frames)  # no duplicate handed out
+    assert len({f.stamp for f, _ in grabs}) == len(grabs)  # no duplicate handed out
     assert backend.duplicates > 0  # the backend polls faster than 15 fps and saw repeats
-    for frame in frames:
-        capture = max((r for r in renders if r.stamp <= frame.stamp), key=lambda r: r.stamp)
-        assert 0.0 <= frame.stamp - capture.stamp < 1.0 / 15.0  # robot clock 1000 s ahead, corrected
+    for frame, stamp in grabs:
+        capture = next(r for r in renders if r.stamp == stamp)
+        assert frame.stamp >= capture.stamp - 1e-6  # robot clock 1000 s ahead, corrected; never early
         assert np.abs(frame.image.astype(int) - capture.image.astype(int)).mean() < 3.0  # YUV422 round trip
-        assert np.allclose(frame.T_BC, nao_to_optical(world.camera_in_robot_nao()))
         assert np.allclose(frame.T_BC, MODEL.camera_in_robot(0.4, -0.2))
         assert (frame.head_yaw, frame.head_pitch) == pytest.approx((0.4, -0.2))
+
+
+def kinematic_errors(standin: StandIn, backend: NaoqiBackend, count: int, latency_min: float):
+    """Grab ``count`` frames; per frame, the T_BC rotation, head yaw and odometry position errors against
+    the simulator's reported truth at the capture, then the same errors of readings taken ``latency_min``
+    after the capture (the earliest the old read-after-return bridge could read them)."""
+    world, errors = standin.world, []
+    for _ in range(count):
+        frame = backend.grab_frame(2.0)
+        assert frame is not None
+        robot_stamp, capture = standin.video.captures[-1]  # the image just served is this frame's
+        assert robot_stamp == pytest.approx(capture + standin.delivery.clock_offset, abs=2e-6)
+        assert frame.stamp >= capture - 1e-6  # never early
+        truth, old = world.kinematics_at(capture), world.kinematics_at(capture + latency_min)
+        T_true = nao_to_optical(truth.T_BC_nao)
+        errors.append((
+            rotation_angle(frame.T_BC, T_true), abs(frame.head_yaw - truth.head[0]),
+            math.dist(frame.odom[:2], truth.odom[:2]),
+            rotation_angle(nao_to_optical(old.T_BC_nao), T_true), abs(old.head[0] - truth.head[0]),
+            math.dist(old.odom[:2], truth.odom[:2]),
+        ))
+    return np.array(errors)
+
+
+# Frames are served 0.20-0.24 s after their capture: the old bridge, reading the kinematics when the image
+# arrived, was at least 0.20 s late; the capture stamp itself is late only by the smallest excess latency
+# seen (transfer, polling: tens of ms on a loaded machine), so errors are compared with that 0.20 s.
+LATE = (0.20, 0.24)
+
+
+def test_frame_kinematics_are_those_of_the_capture_while_the_head_turns():
+    latency = LATE
+    world = SimWorld("can", MODEL, resolution="qvga", seed=4)
+    world.teleport(world.true_pose(), head=(-1.5, 0.0))
+    with StandIn(world, clock_offset=-250.0, latency=latency) as standin:
+        backend = backend_for(standin, camera_latency_min=latency[0])
+        backend.start()
+        world.set_head(1.5, 0.0, 0.1)  # 0.4 rad/s: 3 rad take 7.5 s, longer than the frames below
+        errors = kinematic_errors(standin, backend, 12, latency[0])
+        backend.close()
+    rate = 0.1 * MODEL.head.max_speed
+    # a reading latency_min after the capture is rate * latency_min = 80 mrad off (less the world's 5 ms steps)
+    step = SIM.dynamics.timestep
+    assert (errors[:, 4] >= rate * (latency[0] - 2 * step)).all()  # the old bridge fails both bounds below
+    assert np.median(errors[:, 1]) < 0.5 * rate * latency[0]
+    assert errors[:, 1].max() < 0.75 * rate * latency[0]
+    assert errors[:, 0].max() < 0.75 * rate * latency[0]  # T_BC turns with the head
+    assert backend.kinematics_dropped == {}
+
+
+def test_frame_kinematics_follow_the_torso_roll_while_walking():
+    latency = LATE
+    world = SimWorld("can", MODEL, resolution="qvga", seed=5)
+    with StandIn(world, latency=latency) as standin:
+        world.walk(MODEL.walk.v_max, 0.0, 0.0)  # full speed: full sway
+        backend = backend_for(standin, camera_latency_min=latency[0])
+        backend.start()
+        # 1.5 s of frames after the walk's lag: the sway's 1 Hz roll and 2 Hz pitch through all phases
+        errors = kinematic_errors(standin, backend, int(1.5 * FPS) + 8, latency[0])[8:]
+        backend.stop_walking()
+        backend.close()
+    sway = SIM.dynamics.sway
+    # a reading 0.2 s late is off by 2 rho sin(pi f 0.2) = 1.2 rho at the roll's fastest phase
+    assert errors[:, 3].max() > sway.reported_fraction * sway.roll
+    assert np.median(errors[:, 0]) < 0.5 * np.median(errors[:, 3])  # the old read-after-return bridge fails these
+    assert errors[:, 0].max() < 0.75 * errors[:, 3].max()
+    assert np.median(errors[:, 2]) < 0.5 * np.median(errors[:, 5])  # odometry: 2 cm walked in 0.2 s
+    assert backend.kinematics_dropped == {}
+
+
+def test_frames_outside_the_kinematics_history_are_dropped_and_counted():
+    world = SimWorld("can", MODEL, resolution="qvga", seed=6)
+    with StandIn(world, latency=(0.5, 0.5)) as standin:  # frames older than the history kept below
+        backend = backend_for(standin, kinematics_history=0.2, camera_latency_min=0.5)
+        backend.start()
+        assert backend.grab_frame(1.5) is None
+        backend.close()
+    assert backend.kinematics_dropped["before_history"] >= 1 and set(backend.kinematics_dropped) == {"before_history"}
+
+
+def test_standin_serves_late_dropped_frames_on_a_seeded_schedule():
+    delivery = CameraDelivery(latency=(0.03, 0.12), drop_rate=0.3, clock_offset=5.0, seed=11)
+    draws = [delivery.frame(k) for k in range(400)]
+    assert draws == [CameraDelivery((0.03, 0.12), 0.3, 5.0, 11).frame(k) for k in range(400)]  # seeded
+    assert draws != [CameraDelivery((0.03, 0.12), 0.3, 5.0, 12).frame(k) for k in range(400)]
+    latencies = np.array([d[0] for d in draws])
+    dropped = np.mean([d[1] for d in draws])
+    assert latencies.min() >= 0.03 and latencies.max() <= 0.12
+    assert abs(dropped - 0.3) < 4 * math.sqrt(0.3 * 0.7 / 400)  # binomial: 4 sigma
+    world = SimWorld("can", MODEL, resolution="qvga", seed=7)
+    with StandIn(world, clock_offset=5.0, latency=(0.03, 0.12), drop_rate=0.3) as standin:
+        backend = backend_for(standin)
+        backend.start()
+        frames = [backend.grab_frame(2.0) for _ in range(10)]
+        backend.close()
+        served = standin.video.captures
+        calls = standin.calls_to("ALVideoDevice.getImageRemote")
+    start = standin.calls_to("ALVideoDevice.subscribeCamera")[0].time
+    slots = [(capture - start) * FPS for _, capture in served]  # capture instants on the 1/fps grid
+    assert all(f is not None for f in frames)
+    assert np.all(np.diff([c for _, c in served]) > 0)
+    for (robot_stamp, capture), slot in zip(served, slots):
+        k = round(slot)  # the world stamps a capture on its 5 ms step grid, a fraction of a slot early
+        latency, dropped = standin.delivery.frame(k)  # the stand-in's draws: seeded by the world's seed
+        assert not dropped
+        served_at = next(c.time for c in calls if c.time >= start + k / FPS + latency)
+        assert served_at >= capture + latency  # served no sooner than its latency after the capture
+        assert robot_stamp == pytest.approx(capture + 5.0, abs=2e-6)
+
+
+def test_standin_refuses_a_latency_beyond_the_worlds_history():
+    world = SimWorld("can", MODEL, resolution="qvga", seed=7)
+    with pytest.raises(ValueError, match="dynamics.history"):
+        StandIn(world, latency=(0.1, SIM.dynamics.history + 1.0))
 
 
 def test_grab_frame_returns_none_within_its_timeout_when_no_new_image(standin):
