@@ -2,35 +2,68 @@
 
 Landmark points (image u_i <-> world X_i):
 
-* ArUco markers (``cv2.aruco.ArucoDetector`` on an image reduced to at most ``aruco_detection_width``,
-  corners refined on the full image by ``cv2.cornerSubPix``): the four corners of each marker of
-  the map, in ``Landmark.aruco_corners()`` order. With a pose prior, only boxes around the markers'
-  predicted projections are searched (each marker's box padded by its projected side plus
-  ``aruco_track_margin`` px; overlapping boxes merged); the whole frame is searched when there is
-  no prior or the boxes gave fewer than ``min_points`` corners (a wrong prior costs one full search).
-* Colour markers: centroids of the blobs of each colour class (found at half resolution). Colours repeat, so a blob is
-  associated with the landmark of its colour whose projection from the pose prior is nearest,
-  within ``color_gate`` pixels, and only when no other landmark of that colour is within the gate
-  (ambiguous blobs and doubly claimed landmarks are dropped). Without a prior, only colours that
-  occur once in the map and once in the image are used. Discs are only looked for when the ArUco
-  markers gave fewer than ``color_below_aruco_points`` corners: next to enough sub-pixel corners a
-  disc centroid adds little, and the search costs about a millisecond at VGA.
+* ArUco markers (``cv2.aruco.ArucoDetector``): the four corners of each marker of the map, in
+  ``Landmark.aruco_corners()`` order, refined by ``cv2.cornerSubPix`` on the full image with a
+  half-window of side / 8 (2-6 px; at least f + 1 after a reduction by f). Detection
+  runs on the image reduced by an integer factor f to at most ``aruco_detection_width`` wide. With a
+  pose prior, only boxes around the markers' predicted projections are searched (padded by half the
+  projected side plus ``aruco_track_margin`` px; overlapping boxes merged), each at the largest
+  factor that keeps its smallest predicted marker ``aruco_min_side_px`` wide. Without a prior, or
+  when the boxes gave fewer than ``min_points`` corners, the whole reduced frame is searched, and
+  the whole full-size frame too when that found fewer than ``aruco_full_resolution_below`` markers
+  (small, far markers vanish in the reduced image).
+* Colour markers: centroids of the blobs of each colour class (half resolution; blobs touching the
+  border are dropped, their centroid is biased). Colours repeat, so a blob is associated with the
+  landmark of its colour whose projection from a pose (the prior, or the markers' pose) is
+  nearest, within ``color_gate`` px, and only when no other landmark of that colour is within the
+  gate. With no pose to predict from, or when the predicted association gives no fix, a hypothesis
+  search finds the correspondences from a cold start (below).
 
-Camera pose: T_CW from ``cv2.solvePnPRansac`` (SQPnP hypotheses) when there are >= ``ransac_min_points``
-points, else ``cv2.solvePnP`` (SQPnP); with the camera-in-robot transform at capture time,
+Planar model. The robot stands on the floor: height, roll and pitch come from the kinematics
+(T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
+the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) T_BC with delta a small
+unknown. A point projects as
 
-    T_WB = T_WC T_BC^-1,  T_WC = T_CW^-1                                   (DESIGN.md point 8)
+    X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
 
-and its planar part p = (x, y, theta) seeds a Gauss-Newton refinement of the 3-DOF planar pose on
-the inliers (the robot stands on the floor: height, roll and pitch come from the kinematics):
+Linear seed (no PnP, no 6-DOF ambiguity). With a = cos theta, b = sin theta,
+p = -(a x + b y), q = b x - a y, X_B = (a X + b Y + p, -b X + a Y + q, Z) is linear in
+v = (a, b, p, q), and so is X_C at delta = 0; the normalised image point (x_n, y_n) gives two
+linear equations per point, x_n X_C.z - X_C.x = 0 and y_n X_C.z - X_C.y = 0. Least squares on all
+points gives v (two points determine it exactly); then theta = atan2(b, a), and |(a, b)| = 1 is
+the consistency check a minimal set is scored by. A rank-deficient system (one point, points on
+one ray) gives no fix.
 
-    min_p sum_i || u_i - pi(K, T_BC^-1 T_WB(p)^-1 X_i) ||^2,   R_fix = s^2 (J^T J)^-1,
-    s^2 = max(sigma_px^2, rms^2).
+Refinement: Gauss-Newton on (x, y, theta, delta) on every inlier point, delta held to its prior
+by one extra residual (pixel_sigma / roll_sigma) delta:
 
-Gates: the 6-DOF solution's base must be upright (|z|, roll, pitch of T_WB small: rejects mirror
-solutions); reprojection RMS <= ``max_reprojection_px``; a jump from the prior larger than
-``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is rejected, unless
-``max_rejected_jumps`` fixes in a row disagree with the prior (then the prior is wrong: re-localize).
+    min sum_i || u_i - pi(X_C,i) ||^2 + (sigma_px delta / sigma_roll)^2,
+    R_fix = s^2 [(J^T J)^-1]_{xyθ},  s^2 = max(sigma_px^2, sum_i ||r_i||^2 / (2N - 3)),
+
+with the analytic Jacobian dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta =
+(X_B.y, -X_B.x, 0), d(Rx(-delta) X_B)/d delta = (0, Z', -Y'). A singular J^T J, a point behind the
+camera or a non-finite residual ends the refinement with "no fix" and a reason.
+
+Robust gate (markers): the joint solution of all markers is kept when every marker's corners
+reproject within ``ransac_reprojection_px``; otherwise each marker alone is a hypothesis, markers
+within ``hypothesis_gate_px`` of its prediction are its consensus, and the largest consensus is
+refined jointly and re-gated. A single marker has two planar solutions that nearly explain its
+corners (turned either way about the line of sight, IPPE's two solutions): both seed the
+refinement; the one that explains the corners within ``max_reprojection_px`` alone wins, or the
+one the prior's Mahalanobis distance prefers; when neither is decided, there is no fix.
+
+Cold start with repeated colours: every pair of blobs and every pair of distinct landmarks of
+their colours is a minimal hypothesis (the linear seed on two points); those with |(a, b)| within
+``pair_scale_tolerance`` of 1 are scored by the blobs that have a landmark of their colour
+predicted within ``color_gate`` px (each landmark claimed once). The best consensus of at least
+``min_points`` blobs is refined; it must beat every hypothesis with a different pose (more than
+``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
+
+Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); position std
+(larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks); a jump from the
+prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
+rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior (then the prior is
+wrong: re-localize). Every frame without a fix leaves its reason in ``no_fix_reason``.
 
 Odometry: the pose is W <- odometry-frame correction C composed with the odometry pose,
 p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |dtheta|) grows
@@ -39,13 +72,20 @@ p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |d
 
 and a fix is fused as a Kalman update with identity measurement: K = P (P + R)^-1,
 p <- p + K wrap(z - p), P <- (I - K) P, then C = p (-) o_capture.
+
+Predicted precision (for the pilot and ``station check-layout``): from a pose and T_BC, the
+landmark points that would be detected (in the image with a margin, in front, facing the camera,
+at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the fix covariance
+sigma_px^2 (J^T J)^-1 the measurement would have; ``best_landmark_view`` scans the head's range
+for the direction with the smallest predicted position std.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Optional, Tuple
+from typing import Callable, Dict, Iterable, List, Literal, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -53,30 +93,23 @@ import numpy as np
 from agent.camera import CameraModel
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
-from nao_core.geometry import (
-    Pose,
-    camera_in_world,
-    compose,
-    invert,
-    planar_pose,
-    relative,
-    wrap_angle,
-)
+from nao_core.geometry import Pose, camera_in_world, compose, invert, relative, rot_x, wrap_angle
 from nao_core.landmark_map import Landmark, LandmarkMap
 
 
 @dataclass(frozen=True)
 class LocalizationParams:
-    """PnP, gates and odometry noise (config/localization.yaml, section ``localization``)."""
+    """Detection, planar solve, gates and odometry noise (config/localization.yaml, section ``localization``)."""
 
-    pnp_method: Literal["sqpnp", "iterative", "epnp"]
-    ransac_min_points: int = field(metadata=bounds(4, 1000))  # use RANSAC from this many points
-    ransac_reprojection_px: float = field(metadata=bounds(0.1, 50.0))  # RANSAC inlier threshold, px
-    min_points: int = field(metadata=bounds(4, 1000))  # fewer landmark points -> no fix
+    ransac_reprojection_px: float = field(metadata=bounds(0.1, 50.0))  # a marker's corners within this of the joint fit are inliers, px
+    hypothesis_gate_px: float = field(metadata=bounds(0.1, 200.0))  # consensus gate around a one-marker hypothesis, px
+    min_points: int = field(metadata=bounds(2, 1000))  # fewer landmark points -> no fix
     max_reprojection_px: float = field(metadata=bounds(0.01, 50.0))  # RMS gate on the final fit, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
-    max_tilt: float = field(metadata=bounds(0.0, 1.0))  # rad, roll/pitch of T_WB from the 6-DOF solution
-    max_height: float = field(metadata=bounds(0.0, 1.0))  # m, |z| of T_WB from the 6-DOF solution
+    roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC
+    pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
+    ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
+    max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
@@ -86,8 +119,12 @@ class LocalizationParams:
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
     aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
+    aruco_min_side_px: float = field(metadata=bounds(4.0, 200.0))  # px, smallest marker side the detector is asked to find (in its image)
+    aruco_full_resolution_below: int = field(metadata=bounds(0, 1000))  # markers found reduced: below this, search full size too
     aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
     aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
+    view_margin_px: float = field(metadata=bounds(0.0, 100.0))  # predicted points this close to the border are not counted
+    max_position_std: float = field(metadata=bounds(1e-4, 10.0))  # m: a fix less precise than this is no fix
 
 
 @dataclass(frozen=True)
@@ -99,7 +136,31 @@ class PoseFix:
     rms_px: float  # reprojection RMS of the inliers
     landmark_ids: Tuple[object, ...]
     points: int  # inlier points used
-    T_WC: np.ndarray  # camera pose of the 6-DOF PnP solution
+    T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll)
+    roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
+
+
+@dataclass(frozen=True)
+class LandmarkView:
+    """A head direction and the fix it would give (``best_landmark_view``)."""
+
+    yaw: float
+    pitch: float
+    points: int
+    position_std: float  # m, sqrt of the larger eigenvalue of the predicted (x, y) covariance
+    heading_std: float  # rad
+
+
+class NoFix(Exception):
+    """A frame gives no fix; the message is the reason."""
+
+
+class _Ambiguous(NoFix):
+    """One marker with two planar solutions: other landmarks (colour blobs) may tell them apart."""
+
+    def __init__(self, reason: str, points: "_Points", poses: List[np.ndarray]):
+        super().__init__(reason)
+        self.points, self.poses = points, poses
 
 
 _CORNER_REFINEMENT = {
@@ -108,13 +169,167 @@ _CORNER_REFINEMENT = {
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
 }
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-_PNP_FLAGS = {"sqpnp": cv2.SOLVEPNP_SQPNP, "iterative": cv2.SOLVEPNP_ITERATIVE, "epnp": cv2.SOLVEPNP_EPNP}
+_MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
 
 
+@dataclass
+class _Points:
+    """Correspondences: world points (N x 3), observed pixels (N x 2), landmark id and group per point."""
+
+    X: np.ndarray
+    u: np.ndarray
+    ids: List[object]
+    group: np.ndarray  # points of one marker share a group; a colour blob is its own
+
+    @classmethod
+    def empty(cls) -> "_Points":
+        return cls(np.empty((0, 3)), np.empty((0, 2)), [], np.empty(0, dtype=int))
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def take(self, mask: np.ndarray) -> "_Points":
+        return _Points(self.X[mask], self.u[mask], [i for i, m in zip(self.ids, mask) if m], self.group[mask])
+
+    def __add__(self, other: "_Points") -> "_Points":
+        offset = self.group.max() + 1 if len(self) else 0
+        return _Points(np.vstack([self.X, other.X]), np.vstack([self.u, other.u]), self.ids + other.ids,
+                       np.concatenate([self.group, other.group + offset]))
+
+    @property
+    def landmark_ids(self) -> Tuple[object, ...]:
+        return tuple(dict.fromkeys(self.ids))
+
+
+class PlanarModel:
+    """Projection of world points by a robot pose on the floor, with T_BC and the camera intrinsics."""
+
+    def __init__(self, camera: CameraModel, T_BC: np.ndarray):
+        self.camera = camera
+        self.T_BC = T_BC
+        T_CB = invert(T_BC)
+        self.R_CB, self.t_CB = T_CB[:3, :3], T_CB[:3, 3]
+        K = camera.K
+        self.f, self.c = np.array([K[0, 0], K[1, 1]]), K[:2, 2]
+
+    def undistort(self, u: np.ndarray) -> np.ndarray:
+        """Pixels with the lens distortion removed (pinhole pixels of K)."""
+        if not np.any(self.camera.dist):
+            return np.asarray(u, dtype=float).reshape(-1, 2)
+        K = self.camera.K
+        return cv2.undistortPoints(np.asarray(u, dtype=np.float64).reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
+
+    def to_camera(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """X_C (N x 3) and Rx(-delta) X_B (N x 3) for parameters p = (x, y, theta[, delta])."""
+        c, s = math.cos(p[2]), math.sin(p[2])
+        d = X - np.array([p[0], p[1], 0.0])
+        X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+        if len(p) > 3:
+            X_B = X_B @ rot_x(-p[3])[:3, :3].T
+        return X_B @ self.R_CB.T + self.t_CB, X_B
+
+    def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
+        X_C, _ = self.to_camera(p, X)
+        z = X_C[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = self.f * X_C[:, :2] / z[:, None] + self.c
+        uv[z <= 1e-9] = np.nan
+        return uv, z
+
+    def jacobian(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(uv N x 2, z N, J N x 2 x 4) at p = (x, y, theta, delta)."""
+        c, s = math.cos(p[2]), math.sin(p[2])
+        X_C, X_R = self.to_camera(p, X)
+        R_roll = rot_x(-p[3])[:3, :3]
+        d = X - np.array([p[0], p[1], 0.0])
+        X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+        dB = np.zeros((len(X), 3, 4))  # d(Rx(-delta) X_B) / dp
+        dB[:, :, 0] = R_roll @ np.array([-c, s, 0.0])
+        dB[:, :, 1] = R_roll @ np.array([-s, -c, 0.0])
+        dB[:, :, 2] = np.column_stack([X_B[:, 1], -X_B[:, 0], np.zeros(len(X))]) @ R_roll.T
+        dB[:, :, 3] = np.column_stack([np.zeros(len(X)), X_R[:, 2], -X_R[:, 1]])
+        dC = np.einsum("ij,njk->nik", self.R_CB, dB)
+        z = X_C[:, 2]
+        # d(f a / z) = f (da z - a dz) / z^2 for a = x, y
+        J = self.f[None, :, None] * (dC[:, :2, :] * z[:, None, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, None, None] ** 2
+        uv = self.f * X_C[:, :2] / z[:, None] + self.c
+        return uv, z, J
+
+    def linear_seed(self, X: np.ndarray, target: np.ndarray) -> Tuple[np.ndarray, float]:
+        """(x, y, theta) and |(a, b)| of the linear planar solve (module docstring); raises NoFix when degenerate."""
+        n = (target - self.c) / self.f  # normalised image coordinates
+        rows, rhs = _linear_rows(X, n, self.R_CB, self.t_CB)
+        if len(rows) < 4:
+            raise NoFix(f"{len(X)} point(s): a planar pose needs two")
+        scale = np.linalg.norm(rows, axis=1, keepdims=True)  # equilibrate: far points have larger rows
+        scale[scale == 0] = 1.0
+        v, _, rank, sv = np.linalg.lstsq(rows / scale, rhs / scale.ravel(), rcond=None)
+        if rank < 4 or not np.all(np.isfinite(v)) or sv[-1] < 1e-9 * sv[0]:
+            raise NoFix("degenerate point set (collinear with the camera or repeated): the planar pose is undetermined")
+        return _pose_of(v), float(math.hypot(v[0], v[1]))
+
+    def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, pixel_sigma: float, roll_sigma: float,
+               iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """Gauss-Newton on (x, y, theta, delta): (p, rms, per-point error N, J^T J 4 x 4). Raises NoFix."""
+        p = np.array([*p0[:3], p0[3] if len(p0) > 3 else 0.0], dtype=float)
+        w = pixel_sigma / roll_sigma
+        for _ in range(iterations):
+            uv, z, J = self.jacobian(p, X)
+            if np.any(z < _MIN_DEPTH):
+                raise NoFix(f"{int(np.sum(z < _MIN_DEPTH))} landmark point(s) behind the camera at the fit")
+            r = (uv - target).ravel()
+            Jr = J.reshape(-1, 4)
+            H = Jr.T @ Jr
+            H[3, 3] += w * w
+            g = Jr.T @ r
+            g[3] += w * w * p[3]
+            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+                raise NoFix("non-finite residuals in the planar fit")
+            if np.linalg.cond(H) > 1e12:
+                raise NoFix("singular normal equations in the planar fit (points do not constrain the pose)")
+            dp = -np.linalg.solve(H, g)
+            p += dp
+            p[2] = wrap_angle(p[2])
+            if np.abs(dp).max() < 1e-8:  # m, rad: from the linear seed 3-4 steps get there
+                break
+        uv, z, J = self.jacobian(p, X)
+        if np.any(z < _MIN_DEPTH):
+            raise NoFix("landmark point(s) behind the camera at the fit")
+        err = np.linalg.norm(uv - target, axis=1)
+        Jr = J.reshape(-1, 4)
+        H = Jr.T @ Jr
+        H[3, 3] += w * w
+        rms = float(np.sqrt(np.mean(err**2)))
+        if not math.isfinite(rms):
+            raise NoFix("non-finite reprojection error")
+        return p, rms, err, H
+
+
+def _linear_rows(X: np.ndarray, n: np.ndarray, R_CB: np.ndarray, t_CB: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Two rows per point of M v = rhs, v = (a, b, p, q) (module docstring)."""
+    N = len(X)
+    A = np.zeros((N, 3, 4))  # X_B = A v + (0, 0, Z)
+    A[:, 0, 0], A[:, 0, 1], A[:, 0, 2] = X[:, 0], X[:, 1], 1.0
+    A[:, 1, 0], A[:, 1, 1], A[:, 1, 3] = X[:, 1], -X[:, 0], 1.0
+    M = np.einsum("ij,njk->nik", R_CB, A)  # X_C = M v + m0
+    m0 = X[:, 2:3] * R_CB[:, 2][None, :] + t_CB
+    rows = np.concatenate([n[:, 0:1] * M[:, 2] - M[:, 0], n[:, 1:2] * M[:, 2] - M[:, 1]], axis=0)
+    rhs = np.concatenate([m0[:, 0] - n[:, 0] * m0[:, 2], m0[:, 1] - n[:, 1] * m0[:, 2]])
+    return rows, rhs
+
+
+def _pose_of(v: np.ndarray) -> np.ndarray:
+    """(x, y, theta) from v = (a, b, p, q), (a, b) normalised (works on stacks ... x 4)."""
+    norm = np.hypot(v[..., 0], v[..., 1])
+    c, s = v[..., 0] / norm, v[..., 1] / norm
+    x = -c * v[..., 2] + s * v[..., 3]
+    y = -s * v[..., 2] - c * v[..., 3]
+    return np.stack([x, y, np.arctan2(s, c)], axis=-1)
 
 
 class LandmarkDetector:
-    """Image points of the map's landmarks in one frame: ArUco corners and associated colour blobs."""
+    """Image points of the map's landmarks in one frame: ArUco corners and colour blobs."""
 
     def __init__(self, params: LocalizationParams, landmark_map: LandmarkMap, perception: Optional[PerceptionParams]):
         self.params = params
@@ -123,64 +338,81 @@ class LandmarkDetector:
         for lm in landmark_map.of_kind("aruco"):
             self.aruco.setdefault(str(lm.dictionary), {})[int(lm.id)] = lm.aruco_corners()
         self.aruco_corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
+        self.aruco_normals = np.array([lm.normal for lm in landmark_map.of_kind("aruco")]).reshape(-1, 3)
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
         (detector_params.adaptiveThreshWinSizeMin, detector_params.adaptiveThreshWinSizeMax,
          detector_params.adaptiveThreshWinSizeStep) = params.aruco_threshold_windows
-        self.detectors = {
-            name: cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), detector_params)
-            for name in self.aruco
-        }
+        self.detector_params = detector_params
+        self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
         self.colors: Dict[str, List[Landmark]] = {}
         if perception is not None:
             for lm in landmark_map.of_kind("color"):
                 if lm.color not in perception.colors:
                     raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class")
                 self.colors.setdefault(str(lm.color), []).append(lm)
+        self.color_landmarks = [lm for lms in self.colors.values() for lm in lms]
 
-    def aruco_points(
-        self, gray: np.ndarray, boxes: Optional[List[Tuple[int, int, int, int]]] = None
-    ) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
-        """Map markers found in a grey image: ids, world corners (4 x 3 each), image corners (4 x 2 each).
+    def _detect(self, image: np.ndarray, min_side: float) -> List[Tuple[str, int, np.ndarray]]:
+        found = []
+        self.detector_params.minMarkerPerimeterRate = max(1e-3, min(1.0, 4.0 * min_side / max(image.shape[:2])))
+        for name, dictionary in self.dictionaries.items():
+            corners, ids, _ = cv2.aruco.ArucoDetector(dictionary, self.detector_params).detectMarkers(image)
+            for c, marker_id in zip(corners, () if ids is None else ids.ravel()):
+                if int(marker_id) in self.aruco[name]:
+                    found.append((name, int(marker_id), c.reshape(4, 2)))
+        return found
 
-        Detection runs on the image reduced by an integer factor f to at most
-        ``aruco_detection_width`` wide, in the ``boxes`` (x0, y0, x1, y1; full-size pixels) if given,
-        else everywhere; the corners, mapped back by (c + 1/2) f - 1/2, are refined on the full
-        image with ``cv2.cornerSubPix``.
+    def aruco_points(self, gray: np.ndarray, boxes: Optional[List[Tuple[int, int, int, int, float]]] = None) -> _Points:
+        """Map markers found in a grey image (their corners, refined on the full image).
+
+        ``boxes``: (x0, y0, x1, y1, smallest predicted marker side), full-size pixels; each searched
+        at the largest integer reduction f <= the frame's that keeps that side >= ``aruco_min_side_px``.
+        Without boxes: the whole frame reduced, then at full size when that found too few.
         """
-        factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
-        small = gray
-        if factor > 1:
-            small = cv2.resize(gray, (gray.shape[1] // factor, gray.shape[0] // factor), interpolation=cv2.INTER_AREA)
-        regions = [(0, 0, small.shape[1], small.shape[0])] if boxes is None else [
-            (x0 // factor, y0 // factor, -(-x1 // factor), -(-y1 // factor)) for x0, y0, x1, y1 in boxes
-        ]
-        found: Dict[Tuple[str, int], np.ndarray] = {}
-        for name, detector in self.detectors.items():
-            known = self.aruco[name]
-            for x0, y0, x1, y1 in regions:
-                corners, ids, _ = detector.detectMarkers(small[y0:y1, x0:x1])
-                for c, marker_id in zip(corners, () if ids is None else ids.ravel()):
-                    if int(marker_id) in known:
-                        found[(name, int(marker_id))] = c.reshape(4, 2) + (x0, y0)
-        ids_out: List[object] = [marker_id for _, marker_id in found]
-        world: List[np.ndarray] = [self.aruco[name][marker_id] for name, marker_id in found]
-        image: List[np.ndarray] = list(found.values())
-        if factor > 1 and image:
-            points = ((np.vstack(image) + 0.5) * factor - 0.5).astype(np.float32)
-            window = (factor + 1, factor + 1)  # half-size: a (2f + 3)-pixel square around each corner
-            points = cv2.cornerSubPix(gray, points.reshape(-1, 1, 2), window, (-1, -1), _SUBPIX_CRITERIA).reshape(-1, 2)
-            image = list(points.reshape(-1, 4, 2))
-        return ids_out, world, image
+        frame_factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
+        min_side = self.params.aruco_min_side_px
+        found: Dict[Tuple[str, int], Tuple[np.ndarray, int]] = {}
 
-    def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Tuple[int, int, int, int]]:
-        """Pixel boxes (x0, y0, x1, y1), clipped to the image, around the projections from T_WC of the
-        map markers in front of the camera and facing it, each padded by half its projected side plus
-        ``aruco_track_margin``; overlapping boxes are merged."""
+        def search(x0: int, y0: int, x1: int, y1: int, factor: int) -> None:
+            roi = gray[y0:y1, x0:x1]
+            if factor > 1:
+                roi = cv2.resize(roi, (max(1, roi.shape[1] // factor), max(1, roi.shape[0] // factor)), interpolation=cv2.INTER_AREA)
+            if min(roi.shape[:2]) < 8:
+                return
+            for name, marker_id, c in self._detect(roi, min_side):
+                key = (name, marker_id)
+                if key not in found or found[key][1] > factor:
+                    found[key] = ((c + 0.5) * factor - 0.5 + (x0, y0), factor)
+
+        if boxes is None:
+            search(0, 0, gray.shape[1], gray.shape[0], frame_factor)
+            if frame_factor > 1 and len(found) < self.params.aruco_full_resolution_below:
+                search(0, 0, gray.shape[1], gray.shape[0], 1)
+        else:
+            for x0, y0, x1, y1, side in boxes:
+                factor = int(max(1, min(frame_factor, side // min_side)))
+                search(x0, y0, x1, y1, factor)
+        points = _Points.empty()
+        for (name, marker_id), (corners, factor) in found.items():
+            # Half-window: side / 8 (within the marker's outer black cells), at least the reduction's
+            # uncertainty f + 1, 2..6 px; a window reaching a neighbouring corner pulls the estimate.
+            side = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min())
+            half = int(min(6, max(2, side // 8, factor + 1 if factor > 1 else 0)))
+            corners = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1),
+                                       _SUBPIX_CRITERIA).reshape(4, 2)
+            points = points + _Points(self.aruco[name][marker_id], corners.astype(float), [marker_id] * 4, np.zeros(4, dtype=int))
+        return points
+
+    def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Tuple[int, int, int, int, float]]:
+        """Pixel boxes (x0, y0, x1, y1, smallest marker side in it), clipped to the image, around the
+        projections from T_WC of the map markers in front of the camera and facing it, each padded by
+        half its projected side plus ``aruco_track_margin``; overlapping boxes are merged."""
         if len(self.aruco_corners) == 0:
             return []
         uv, in_front = camera.project_world(self.aruco_corners, T_WC)
-        quads = uv.reshape(-1, 4, 2)[in_front.reshape(-1, 4).all(axis=1)]
+        ok = in_front.reshape(-1, 4).all(axis=1)
+        quads = uv.reshape(-1, 4, 2)[ok]
         x, y = quads[..., 0], quads[..., 1]
         # Shoelace area (image y down): positive for a marker seen from the front in cv2.aruco's
         # corner order; a marker seen from behind is mirrored, one edge-on has none.
@@ -189,51 +421,62 @@ class LandmarkDetector:
         margin = self.params.aruco_track_margin
         size = np.array([camera.width, camera.height])
         near = np.all(hi >= -margin, axis=1) & np.all(lo <= size - 1 + margin, axis=1)  # in the image, or nearly
+        side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
         pad = (0.5 * (hi - lo).max(axis=1) + margin)[:, None]
         lo = np.clip(np.floor(lo - pad), 0, size).astype(int)
         hi = np.clip(np.floor(hi + pad) + 1, 0, size).astype(int)
-        boxes = [[*l, *h] for l, h in zip(lo[facing & near], hi[facing & near])]
-        return _merge_boxes(boxes)
+        keep = facing & near
+        return _merge_boxes([[*l, *h, s] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
 
-    def color_points(
-        self, image_bgr: np.ndarray, camera: CameraModel, T_WC_prior: Optional[np.ndarray]
-    ) -> Tuple[List[object], List[np.ndarray], List[np.ndarray]]:
+    def color_blobs(self, image_bgr: np.ndarray) -> Dict[str, np.ndarray]:
+        """Blob centroids (N x 2, full-size pixels) per colour class of the map, off the border."""
         if not self.colors:
-            return [], [], []
+            return {}
         assert self.perception is not None
         # Half resolution: 4x fewer pixels; a half-size pixel (i, j) is centred on full-size (2i + 1/2, 2j + 1/2).
         half = cv2.resize(image_bgr, (image_bgr.shape[1] // 2, image_bgr.shape[0] // 2), interpolation=cv2.INTER_AREA)
         hsv = cv2.cvtColor(half, cv2.COLOR_BGR2HSV)
         min_area = max(1, self.perception.landmark_min_area // 4)
-        ids: List[object] = []
-        world: List[np.ndarray] = []
-        image: List[np.ndarray] = []
-        for name, landmarks in self.colors.items():
-            _, _, centroids = blobs(color_mask(hsv, self.perception.colors[name]), min_area)
-            for lm, uv in self._associate(landmarks, 2.0 * centroids + 0.5, camera, T_WC_prior):
-                ids.append(lm.id)
-                world.append(np.asarray(lm.position, dtype=float).reshape(1, 3))
-                image.append(uv.reshape(1, 2))
-        return ids, world, image
+        out = {}
+        for name in self.colors:
+            color = self.perception.colors[name]
+            contours, _, _ = blobs(color_mask(hsv, color), min_area)
+            centres = []
+            for contour in contours:
+                x, y, w, h = cv2.boundingRect(contour)
+                if not _off_border((x, y, w, h), half.shape):
+                    continue
+                # the centroid of the full-size mask in the blob's box (padded by one half-size pixel)
+                x0, y0 = max(0, 2 * x - 2), max(0, 2 * y - 2)
+                roi = image_bgr[y0 : 2 * (y + h) + 2, x0 : 2 * (x + w) + 2]
+                m = cv2.moments(color_mask(cv2.cvtColor(roi, cv2.COLOR_BGR2HSV), color), binaryImage=True)
+                if m["m00"] > 0:
+                    centres.append((x0 + m["m10"] / m["m00"], y0 + m["m01"] / m["m00"]))
+            out[name] = np.array(centres, dtype=float).reshape(-1, 2)
+        return out
 
-    def _associate(self, landmarks: List[Landmark], centroids: np.ndarray, camera: CameraModel, T_WC: Optional[np.ndarray]):
-        """(landmark, blob centroid) pairs that are unambiguous under the prior's projections."""
-        if len(centroids) == 0:
-            return []
-        if T_WC is None:
-            return [(landmarks[0], centroids[0])] if len(landmarks) == 1 and len(centroids) == 1 else []
-        predicted, in_front = camera.project_world(np.array([lm.position for lm in landmarks]), T_WC)
-        gate = self.params.color_gate
-        distances = np.linalg.norm(centroids[:, None, :] - predicted[None, :, :], axis=2)
-        distances[:, ~in_front] = np.inf
-        within = distances <= gate
-        pairs = []
-        for b in range(len(centroids)):
-            candidates = np.flatnonzero(within[b])
-            # Unambiguous: one landmark within the gate of this blob, and this blob the only one near it.
-            if len(candidates) == 1 and within[:, candidates[0]].sum() == 1:
-                pairs.append((landmarks[candidates[0]], centroids[b]))
-        return pairs
+    def associate(self, centroids: Dict[str, np.ndarray], model: PlanarModel, pose: np.ndarray, gate: float) -> _Points:
+        """Blob <-> landmark pairs that are unambiguous under the projections from ``pose``."""
+        points = _Points.empty()
+        for name, uv in centroids.items():
+            landmarks = self.colors[name]
+            if len(uv) == 0:
+                continue
+            predicted, _ = model.project(pose, np.array([lm.position for lm in landmarks], dtype=float))
+            distances = np.linalg.norm(uv[:, None, :] - predicted[None, :, :], axis=2)
+            within = np.nan_to_num(distances, nan=np.inf) <= gate
+            for b in range(len(uv)):
+                candidates = np.flatnonzero(within[b])
+                # Unambiguous: one landmark within the gate of this blob, and this blob the only one near it.
+                if len(candidates) == 1 and within[:, candidates[0]].sum() == 1:
+                    lm = landmarks[candidates[0]]
+                    points = points + _Points(np.array([lm.position], dtype=float), uv[b : b + 1], [lm.id], np.zeros(1, dtype=int))
+        return points
+
+
+def _off_border(rect: Tuple[int, int, int, int], shape: Tuple[int, ...]) -> bool:
+    x, y, w, h = rect
+    return x > 0 and y > 0 and x + w < shape[1] and y + h < shape[0]
 
 
 class RobotLocalizer:
@@ -248,10 +491,13 @@ class RobotLocalizer:
     ):
         self.params = params
         self.camera = camera
+        self.landmark_map = landmark_map
+        self.perception = perception_params
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
         self._correction: Optional[Pose] = None  # W <- odometry frame
         self.covariance = np.full((3, 3), np.nan)
         self.rejected_jumps = 0
+        self.no_fix_reason = ""
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
 
@@ -275,7 +521,7 @@ class RobotLocalizer:
     def on_odometry(self, odom: Pose, stamp: float) -> None:
         """Carry the pose with a newer odometry reading; its covariance grows with the motion."""
         odom = _check_pose(odom, "odom")
-        if stamp < self._stamp:
+        if not math.isfinite(stamp) or stamp < self._stamp:
             return
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
@@ -290,15 +536,19 @@ class RobotLocalizer:
             self.covariance = F @ self.covariance @ F.T + G @ Q @ G.T
         self._odom, self._stamp = odom, stamp
 
+    def position_std(self) -> float:
+        """m, sqrt of the larger eigenvalue of the (x, y) covariance; inf before the first fix."""
+        if self._correction is None or not np.all(np.isfinite(self.covariance)):
+            return math.inf
+        return float(math.sqrt(max(0.0, np.linalg.eigvalsh(self.covariance[:2, :2])[-1])))
+
     def on_frame(self, image: np.ndarray, T_BC: np.ndarray, odom: Pose, stamp: float) -> Optional[PoseFix]:
-        """A landmark fix from a frame (fused into the pose), or None when it gave none.
+        """A landmark fix from a frame (fused into the pose), or None when it gave none (``no_fix_reason`` says why).
 
         Raises ``ImageError`` on a garbage image and ``ValueError`` on a malformed T_BC or odometry.
         """
         image = check_image(image, (self.camera.width, self.camera.height))
-        T_BC = np.asarray(T_BC, dtype=float)
-        if T_BC.shape != (4, 4) or not np.all(np.isfinite(T_BC)):
-            raise ValueError(f"T_BC must be a finite 4 x 4 transform, got shape {T_BC.shape}")
+        T_BC = _check_transform(T_BC)
         odom = _check_pose(odom, "odom")
         self.on_odometry(odom, stamp)
         prior = self.pose_at(odom)
@@ -306,98 +556,377 @@ class RobotLocalizer:
         if fix is None:
             return None
         if prior is not None and not self._accept_jump(prior, fix):
+            self.no_fix_reason = f"jump of {math.hypot(fix.pose[0] - prior[0], fix.pose[1] - prior[1]):.2f} m from the prior rejected"
             return None
         self._fuse(fix, prior, odom)
         return fix
 
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None) -> Optional[PoseFix]:
-        """The pose fix of one frame on its own (no jump gate, no fusion), or None."""
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        T_WC_prior = None if prior is None else camera_in_world(prior, T_BC)
-        ids, world, pixels = [], [], []
-        if T_WC_prior is not None:
-            ids, world, pixels = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC_prior))
-        if 4 * len(ids) < self.params.min_points:  # no prior, or it predicted the markers wrong: search everywhere
-            ids, world, pixels = self.detector.aruco_points(gray)
-        if 4 * len(ids) < self.params.color_below_aruco_points:  # discs add little to enough sub-pixel corners
-            c_ids, c_world, c_pixels = self.detector.color_points(image, self.camera, T_WC_prior)
-            ids, world, pixels = ids + c_ids, world + c_world, pixels + c_pixels
-        if not world:
-            return None
-        X = np.vstack(world).astype(np.float64)
-        u = np.vstack(pixels).astype(np.float64)
-        if len(X) < self.params.min_points:
-            return None
-        T_CW, inliers = self._solve_pnp(X, u)
-        if T_CW is None:
-            return None
-        T_WC = invert(T_CW)
-        T_WB = T_WC @ invert(T_BC)
-        if abs(T_WB[2, 3]) > self.params.max_height or math.acos(min(1.0, T_WB[2, 2])) > self.params.max_tilt:
-            return None
-        pose, rms, J = self._refine_planar(planar_pose(T_WB), T_BC, X[inliers], u[inliers])
-        if rms > self.params.max_reprojection_px:
-            return None
-        scale = max(self.params.pixel_sigma, rms) ** 2
+        """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why)."""
+        self.no_fix_reason = ""
         try:
-            covariance = scale * np.linalg.inv(J.T @ J)
-        except np.linalg.LinAlgError:
+            return self._measure(image, _check_transform(T_BC), prior)
+        except NoFix as reason:
+            self.no_fix_reason = str(reason)
             return None
-        return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=tuple(ids), points=int(len(inliers)), T_WC=T_WC)
 
-    def _solve_pnp(self, X: np.ndarray, u: np.ndarray) -> Tuple[Optional[np.ndarray], np.ndarray]:
-        K, dist = self.camera.K, self.camera.dist
-        flag = _PNP_FLAGS[self.params.pnp_method]
-        if len(X) >= self.params.ransac_min_points:
-            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-                X, u, K, dist, reprojectionError=self.params.ransac_reprojection_px, flags=flag, iterationsCount=100
-            )
-            if not ok or inliers is None or len(inliers) < self.params.min_points:
-                return None, np.empty(0, dtype=int)
-            idx = inliers.ravel()
-            rvec, tvec = cv2.solvePnPRefineLM(X[idx], u[idx], K, dist, rvec, tvec)
+    def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose]) -> PoseFix:
+        model = PlanarModel(self.camera, T_BC)
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        prior_p = None
+        if prior is not None and all(math.isfinite(v) for v in prior):
+            prior_p = np.array([*prior, 0.0])
+        markers = None
+        if prior_p is not None:
+            markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, camera_in_world(prior, T_BC)))
+        if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
+            markers = self.detector.aruco_points(gray)
+        markers = _Points(markers.X, model.undistort(markers.u), markers.ids, markers.group)
+        return self._solve(model, markers, lambda: self.detector.color_blobs(image), prior_p)
+
+    def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
+            groups: Optional[np.ndarray] = None) -> Optional[PoseFix]:
+        """The fix from given correspondences (N x 3 world, N x 2 pixels; ``groups``: marker of each
+        point, default four points per marker), or None (``no_fix_reason`` says why). For tests and tools."""
+        self.no_fix_reason = ""
+        try:
+            model = PlanarModel(self.camera, _check_transform(T_BC))
+            X = np.asarray(world_points, dtype=float).reshape(-1, 3)
+            u = np.asarray(pixels, dtype=float).reshape(-1, 2)
+            group = np.arange(len(X)) // 4 if groups is None else np.asarray(groups, dtype=int).reshape(-1)
+            if len(u) != len(X) or len(group) != len(X):
+                raise ValueError(f"{len(X)} world points, {len(u)} pixels and {len(group)} groups do not match")
+            finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(u), axis=1)
+            points = _Points(X[finite], model.undistort(u[finite]), list(group[finite]), group[finite])
+            prior_p = None if prior is None or not all(math.isfinite(v) for v in prior) else np.array([*prior, 0.0])
+            return self._solve(model, points, dict, prior_p)
+        except NoFix as reason:
+            self.no_fix_reason = str(reason)
+            return None
+
+    def _solve(self, model: PlanarModel, markers: _Points, colour_blobs: Callable[[], Dict[str, np.ndarray]],
+               prior_p: Optional[np.ndarray]) -> PoseFix:
+        """Markers fitted jointly, colour blobs added (or searched) when they are few (module docstring)."""
+        reasons = []
+        fit = None
+        seeds: List[np.ndarray] = []  # poses to associate colour blobs from
+        if len(markers):
+            try:
+                fit = self._fit_markers(model, markers, prior_p)
+                seeds = [fit[1]]
+            except _Ambiguous as ambiguous:
+                reasons.append(f"markers: {ambiguous}")
+                seeds = ambiguous.poses
+            except NoFix as reason:
+                reasons.append(f"markers: {reason}")
+        if (fit is None or len(fit[0]) < self.params.color_below_aruco_points) and self.detector.colors:
+            centroids = {k: model.undistort(v) for k, v in colour_blobs().items()}
+            n_blobs = sum(len(v) for v in centroids.values())
+            try:
+                fit = self._fit_with_colours(model, markers if fit is None else fit[0], seeds, centroids, prior_p)
+            except NoFix as reason:
+                reasons.append(f"colour markers ({n_blobs} blobs): {reason}")
+        if fit is None:
+            if not len(markers) and not reasons:
+                raise NoFix("no landmark in view")
+            raise NoFix("; ".join(reasons))
+        points, p, rms, H = fit
+        if not rms <= self.params.max_reprojection_px:  # a NaN fails too
+            raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
+        # per-axis residual variance with 3 degrees of freedom used (delta is held by its prior)
+        residual_var = 2.0 * len(points) * rms**2 / max(1, 2 * len(points) - 3)
+        covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]
+        if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
+            raise NoFix("fix covariance not positive")
+        std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
+        if std > self.params.max_position_std:
+            raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {self.params.max_position_std * 100:.1f} cm "
+                        f"({len(points.landmark_ids)} landmarks, far or bunched)")
+        T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ model.T_BC)
+        pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
+        return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]))
+
+    # -- markers -------------------------------------------------------------------------------
+
+    def _refine(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
+        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self.params.roll_sigma)
+
+    def _fit_markers(self, model: PlanarModel, markers: _Points, prior: Optional[np.ndarray]):
+        """(inlier points, p, rms, H): the joint fit of all markers, or the largest consensus (module docstring)."""
+        groups = np.unique(markers.group)
+        if len(groups) == 1:
+            return self._single_marker(model, markers, prior)
+        gate = self.params.ransac_reprojection_px
+        try:
+            p, rms, err, H = self._refine(model, markers, model.linear_seed(markers.X, markers.u)[0])
+            if np.all(_group_max(err, markers.group) <= gate):
+                return markers, p, rms, H
+        except NoFix:
+            pass
+        best: Optional[np.ndarray] = None
+        for g in groups:  # one-marker hypotheses, scored by the markers they predict
+            one = markers.take(markers.group == g)
+            try:
+                p, _, _, _ = self._refine(model, one, model.linear_seed(one.X, one.u)[0])
+            except NoFix:
+                continue
+            uv, _ = model.project(p, markers.X)
+            err = np.nan_to_num(np.linalg.norm(uv - markers.u, axis=1), nan=np.inf)
+            inliers = np.isin(markers.group, groups[_group_max(err, markers.group) <= self.params.hypothesis_gate_px])
+            if best is None or inliers.sum() > best.sum():
+                best = inliers
+        if best is None:
+            raise NoFix(f"no marker of {len(groups)} gives a planar pose")
+        consensus = markers.take(best)
+        p, rms, err, H = self._refine(model, consensus, model.linear_seed(consensus.X, consensus.u)[0])
+        keep = np.isin(consensus.group, np.unique(consensus.group)[_group_max(err, consensus.group) <= gate])
+        if not keep.any():
+            raise NoFix("no marker agrees with the joint fit")
+        if not keep.all():
+            consensus = consensus.take(keep)
+            if len(np.unique(consensus.group)) == 1:
+                return self._single_marker(model, consensus, prior)
+            p, rms, err, H = self._refine(model, consensus, p)
+        return consensus, p, rms, H
+
+    def _single_marker(self, model: PlanarModel, marker: _Points, prior: Optional[np.ndarray]):
+        """Both planar solutions of one marker (linear seed and IPPE's two), told apart or no fix."""
+        seeds = [model.linear_seed(marker.X, marker.u)[0]]
+        seeds += self._ippe_seeds(model, marker)
+        solutions: List[Tuple[np.ndarray, float, np.ndarray]] = []
+        for seed in seeds:
+            try:
+                p, rms, _, H = self._refine(model, marker, seed)
+            except NoFix:
+                continue
+            if all(math.hypot(*(p[:2] - q[:2])) > 1e-3 or abs(wrap_angle(p[2] - q[2])) > 1e-3 for q, _, _ in solutions):
+                solutions.append((p, rms, H))
+        if not solutions:
+            raise NoFix("one marker: no planar solution")
+        solutions.sort(key=lambda s: s[1])
+        passing = [s for s in solutions if s[1] <= self.params.max_reprojection_px]
+        distinct = [s for s in passing[1:] if math.hypot(*(s[0][:2] - passing[0][0][:2])) > self.params.ambiguity_distance]
+        if passing and distinct:
+            if prior is None:
+                raise _Ambiguous("one marker: two planar solutions explain it and there is no prior to choose",
+                                 marker, [s[0] for s in passing])
+            P = self.covariance if np.all(np.isfinite(self.covariance)) else np.eye(3)
+            scores = sorted((_mahalanobis(s[0], prior, P + self.params.pixel_sigma**2 * np.linalg.inv(s[2])[:3, :3]), k)
+                            for k, s in enumerate(passing))
+            if scores[1][0] < 4.0 * scores[0][0] + 9.0:  # the runner-up is not 3 sigma (and 2x) further from the prior
+                raise _Ambiguous("one marker: the prior does not tell its two planar solutions apart", marker,
+                                 [s[0] for s in passing])
+            chosen = passing[scores[0][1]]
         else:
-            ok, rvec, tvec = cv2.solvePnP(X, u, K, dist, flags=flag)
-            if not ok:
-                return None, np.empty(0, dtype=int)
-            idx = np.arange(len(X))
-        T_CW = np.eye(4)
-        T_CW[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T_CW[:3, 3] = tvec.ravel()
-        return T_CW, idx
+            chosen = solutions[0]
+        return marker, chosen[0], chosen[1], chosen[2]
 
-    def _refine_planar(self, pose: Pose, T_BC: np.ndarray, X: np.ndarray, u: np.ndarray, iterations: int = 6):
-        """Gauss-Newton on (x, y, theta) with the analytic Jacobian, in undistorted pixels.
+    def _ippe_seeds(self, model: PlanarModel, marker: _Points) -> List[np.ndarray]:
+        """Planar poses of IPPE's two solutions for one marker (T_WB = T_WC T_BC^-1)."""
+        try:
+            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker.X, marker.u, self.camera.K, None, flags=cv2.SOLVEPNP_IPPE)
+        except cv2.error:
+            return []
+        seeds = []
+        for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
+            T_CW = np.eye(4)
+            T_CW[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T_CW[:3, 3] = np.ravel(tvec)
+            T_WB = invert(T_CW) @ invert(model.T_BC)
+            if np.all(np.isfinite(T_WB)):
+                seeds.append(np.array([T_WB[0, 3], T_WB[1, 3], math.atan2(T_WB[1, 0], T_WB[0, 0])]))
+        return seeds
 
-        X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB X_B + t_CB,  u = (f_x X_C.x / X_C.z + c_x, f_y X_C.y / X_C.z + c_y);
-        dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta = (X_B.y, -X_B.x, 0).
-        Returns (pose, rms, J) with J the 2N x 3 Jacobian at the solution.
+    # -- colour markers ------------------------------------------------------------------------
+
+    def _fit_with_colours(self, model: PlanarModel, markers: _Points, seeds: List[np.ndarray],
+                          centroids: Dict[str, np.ndarray], prior: Optional[np.ndarray]):
+        """Blobs associated from the markers' pose(s) or the prior, else found by the hypothesis search.
+
+        With several marker poses (one marker's two solutions), the one whose associated blobs fit
+        with the most points wins; a tie is no fix.
         """
-        K = self.camera.K
-        f, principal = np.array([K[0, 0], K[1, 1]]), K[:2, 2]
-        target = cv2.undistortPoints(u.reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
-        T_CB = invert(T_BC)
-        R_CB, t_CB = T_CB[:3, :3], T_CB[:3, 3]
-        p = np.array(pose, dtype=float)
-        for _ in range(iterations):
-            c, s = math.cos(p[2]), math.sin(p[2])
-            d = X - np.array([p[0], p[1], 0.0])
-            X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
-            X_C = X_B @ R_CB.T + t_CB
-            z = X_C[:, 2:3]
-            r = (f * X_C[:, :2] / z + principal - target).ravel()
-            dC_dxy = R_CB @ np.array([[-c, -s], [s, -c], [0.0, 0.0]])  # 3 x 2, the same for every point
-            dC_dtheta = np.outer(X_B[:, 1], R_CB[:, 0]) - np.outer(X_B[:, 0], R_CB[:, 1])  # N x 3
-            dC = np.concatenate([np.broadcast_to(dC_dxy, (len(X_B), 3, 2)), dC_dtheta[:, :, None]], axis=2)  # N x xyz x params
-            # d(f a / z) = f (da z - a dz) / z^2 for a = x, y
-            J = f[None, :, None] * (dC[:, :2, :] * z[:, :, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, :, None] ** 2
-            J = J.reshape(-1, 3)
-            dp = np.linalg.solve(J.T @ J, -J.T @ r)
-            p += dp
-            if np.abs(dp).max() < 1e-8:  # m, rad: Gauss-Newton from the PnP seed gets there in 2-3 steps
-                break
-        rms = float(np.sqrt(np.mean(r**2) * 2.0))
-        return (float(p[0]), float(p[1]), wrap_angle(float(p[2]))), rms, J
+        fits = []
+        for pose in seeds:
+            try:
+                fits.append(self._joint(model, markers + self.detector.associate(centroids, model, pose, self.params.color_gate), pose))
+            except NoFix:
+                continue
+        fits = [f for f in fits if f[2] <= self.params.max_reprojection_px]
+        if len(seeds) > 1:
+            fits.sort(key=lambda f: -len(f[0]))
+            if len(fits) > 1 and len(fits[1][0]) == len(fits[0][0]):
+                raise NoFix("one marker's two planar solutions both fit the blobs")
+            if fits and len(fits[0][0]) > len(markers):
+                return fits[0]
+        elif fits:
+            return fits[0]
+        if prior is not None:
+            points = markers + self.detector.associate(centroids, model, prior, self.params.color_gate)
+            if len(points) >= self.params.min_points:
+                try:
+                    return self._joint(model, points, prior)
+                except NoFix:
+                    pass
+        return self._colour_search(model, markers, centroids)
+
+    def _joint(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
+        if len(points) < self.params.min_points:
+            raise NoFix(f"{len(points)} points, fewer than {self.params.min_points}")
+        p, rms, err, H = self._refine(model, points, seed)
+        if not np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px):
+            raise NoFix("points disagree with the joint fit")
+        return points, p, rms, H
+
+    def _colour_search(self, model: PlanarModel, markers: _Points, centroids: Dict[str, np.ndarray]):
+        """Cold start: two-blob hypotheses over colour-consistent landmark pairs (module docstring)."""
+        blobs_uv = np.vstack([uv for uv in centroids.values()]) if centroids else np.empty((0, 2))
+        blob_colour = [name for name, uv in centroids.items() for _ in range(len(uv))]
+        if len(blobs_uv) + len(markers) < self.params.min_points:
+            raise NoFix(f"{len(blobs_uv)} blobs and {len(markers)} marker corners: fewer than {self.params.min_points} points")
+        lms = self.detector.color_landmarks
+        L = np.array([lm.position for lm in lms], dtype=float)
+        colour_of = np.array([lm.color for lm in lms])
+        same = np.array([[colour_of[j] == blob_colour[b] for j in range(len(lms))] for b in range(len(blobs_uv))]).reshape(len(blobs_uv), len(lms))
+        hyps_X, hyps_u = [], []
+        for b1, b2 in itertools.combinations(range(len(blobs_uv)), 2):
+            for l1, l2 in itertools.product(np.flatnonzero(same[b1]), np.flatnonzero(same[b2])):
+                if l1 != l2:
+                    hyps_X.append(L[[l1, l2]])
+                    hyps_u.append(blobs_uv[[b1, b2]])
+        if not hyps_X:
+            raise NoFix("no colour-consistent pair of blobs")
+        poses = self._pair_poses(model, np.array(hyps_X), np.array(hyps_u))
+        if len(poses) == 0:
+            raise NoFix("no pair of blobs gives a consistent planar pose")
+        scores = self._consensus(model, poses, blobs_uv, same, L, markers)
+        top = scores.max()
+        if top < self.params.min_points:
+            raise NoFix(f"best hypothesis explains {int(top)} points, fewer than {self.params.min_points}")
+        fits = []
+        for pose in _distinct(poses[scores >= top - 1], scores[scores >= top - 1], self.params.ambiguity_distance):
+            try:
+                fits.append(self._associated_fit(model, markers, centroids, np.array([*pose, 0.0])))
+            except NoFix:
+                continue
+        fits = [f for f in fits if f[2] <= self.params.max_reprojection_px]
+        if not fits:
+            raise NoFix("no hypothesis survives refinement")
+        fits.sort(key=lambda f: (-len(f[0]), f[2]))
+        rivals = [f for f in fits[1:] if len(f[0]) >= len(fits[0][0])
+                  and math.hypot(*(f[1][:2] - fits[0][1][:2])) > self.params.ambiguity_distance]
+        if rivals:
+            raise NoFix("two distinct poses explain the blobs equally well (symmetric layout from here)")
+        return fits[0]
+
+    def _associated_fit(self, model: PlanarModel, markers: _Points, centroids: Dict[str, np.ndarray], pose: np.ndarray):
+        """Associate from ``pose``, refine, associate again from the refined pose, refine and gate."""
+        for _ in range(2):
+            points = markers + self.detector.associate(centroids, model, pose, self.params.color_gate)
+            if len(points) < self.params.min_points:
+                raise NoFix("the hypothesis lost its blobs on refinement")
+            pose, _, _, _ = self._refine(model, points, pose)
+        return self._joint(model, points, pose)
+
+    def _pair_poses(self, model: PlanarModel, X: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """(x, y, theta) of every two-point hypothesis (H x 2 x 3, H x 2 x 2) passing the scale check."""
+        n = (u - model.c) / model.f
+        H = len(X)
+        rows, rhs = _linear_rows(X.reshape(-1, 3), n.reshape(-1, 2), model.R_CB, model.t_CB)
+        # rows are (x equations of all points; y equations of all points): regroup per hypothesis
+        rows = np.concatenate([rows[: 2 * H].reshape(H, 2, 4), rows[2 * H :].reshape(H, 2, 4)], axis=1)
+        rhs = np.concatenate([rhs[: 2 * H].reshape(H, 2), rhs[2 * H :].reshape(H, 2)], axis=1)
+        ok = np.abs(np.linalg.det(rows)) > 1e-12
+        v = np.full((H, 4), np.nan)
+        v[ok] = np.linalg.solve(rows[ok], rhs[ok][..., None])[..., 0]
+        norm = np.hypot(v[:, 0], v[:, 1])
+        keep = np.isfinite(norm) & (np.abs(norm - 1.0) <= self.params.pair_scale_tolerance)
+        poses = _pose_of(v[keep])
+        # the two points must be in front of the camera and within reach
+        return np.array([p for p, Xh in zip(poses, X[keep]) if self._plausible(model, p, Xh)]).reshape(-1, 3)
+
+    def _plausible(self, model: PlanarModel, p: np.ndarray, X: np.ndarray) -> bool:
+        X_C, _ = model.to_camera(p, X)
+        return bool(np.all(X_C[:, 2] > _MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
+
+    def _consensus(self, model: PlanarModel, poses: np.ndarray, blobs_uv: np.ndarray, same: np.ndarray,
+                   L: np.ndarray, markers: _Points) -> np.ndarray:
+        """Per pose: blobs with a landmark of their colour predicted within the gate (each claimed once), plus marker corners that fit."""
+        scores = np.zeros(len(poses))
+        for k, p in enumerate(poses):
+            uv, _ = model.project(p, L)
+            d = np.linalg.norm(blobs_uv[:, None, :] - uv[None, :, :], axis=2)
+            d = np.where(same & np.isfinite(d), d, np.inf)
+            near = d <= self.params.color_gate
+            claimed = np.zeros(len(L), dtype=bool)
+            for b in np.argsort(d.min(axis=1)):
+                j = int(np.argmin(d[b]))
+                if near[b, j] and not claimed[j]:
+                    claimed[j] = True
+                    scores[k] += 1
+            if len(markers):
+                uv_m, _ = model.project(p, markers.X)
+                scores[k] += np.sum(np.nan_to_num(np.linalg.norm(uv_m - markers.u, axis=1), nan=np.inf) <= self.params.color_gate)
+        return scores
+
+    # -- prediction ----------------------------------------------------------------------------
+
+    def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
+        """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
+        model = PlanarModel(self.camera, T_BC)
+        p = np.array([*pose, 0.0])
+        X, _ = self._visible_points(model, p)
+        if len(X) < self.params.min_points:
+            return len(X), None
+        _, _, J = model.jacobian(p, X)
+        Jr = J.reshape(-1, 4)
+        H = Jr.T @ Jr
+        H[3, 3] += (self.params.pixel_sigma / self.params.roll_sigma) ** 2
+        if np.linalg.cond(H) > 1e10:
+            return len(X), None
+        return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
+
+    def _visible_points(self, model: PlanarModel, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        margin = self.params.view_margin_px
+        size = np.array([self.camera.width, self.camera.height])
+        chosen = []
+        corners = self.detector.aruco_corners
+        if len(corners):
+            uv, z = model.project(p, corners)
+            quads, depth = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
+            x, y = quads[..., 0], quads[..., 1]
+            facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
+            inside = np.all((quads >= margin) & (quads <= size - 1 - margin), axis=(1, 2)) & np.all(depth > _MIN_DEPTH, axis=1)
+            side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
+            ok = facing & inside & (np.nan_to_num(side) >= self.params.aruco_min_side_px)
+            chosen.append(corners.reshape(-1, 4, 3)[ok].reshape(-1, 3))
+        if self.detector.color_landmarks and self.perception is not None:
+            L = np.array([lm.position for lm in self.detector.color_landmarks], dtype=float)
+            diameters = np.array([lm.diameter for lm in self.detector.color_landmarks])
+            uv, z = model.project(p, L)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                area = math.pi / 4 * (self.camera.K[0, 0] * diameters / z) ** 2
+            inside = np.all((uv >= margin) & (uv <= size - 1 - margin), axis=1) & (z > _MIN_DEPTH)
+            chosen.append(L[inside & (area >= self.perception.landmark_min_area)])
+        X = np.vstack(chosen) if chosen else np.empty((0, 3))
+        return X, model.project(p, X)[0]
+
+    def best_landmark_view(self, pose: Pose, camera_in_robot: Callable[[float, float], np.ndarray],
+                           directions: Iterable[Tuple[float, float]]) -> Optional[LandmarkView]:
+        """Of the head ``directions`` (yaw, pitch), the one whose predicted fix from ``pose`` is most precise."""
+        best: Optional[LandmarkView] = None
+        for yaw, pitch in directions:
+            points, cov = self.predicted_fix(pose, camera_in_robot(yaw, pitch))
+            if cov is None:
+                continue
+            view = LandmarkView(float(yaw), float(pitch), points, float(math.sqrt(np.linalg.eigvalsh(cov[:2, :2])[-1])),
+                                float(math.sqrt(cov[2, 2])))
+            if best is None or view.position_std < best.position_std:
+                best = view
+        return best
+
+    # -- fusion --------------------------------------------------------------------------------
 
     def _accept_jump(self, prior: Pose, fix: PoseFix) -> bool:
         diff = _difference(fix.pose, prior)
@@ -414,7 +943,7 @@ class RobotLocalizer:
         return False
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
-        if self._correction is None or prior is None:
+        if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):
             pose, P = np.array(fix.pose), fix.covariance
         else:
             K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
@@ -425,14 +954,47 @@ class RobotLocalizer:
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
 
 
+def head_directions(head_limits, yaw_step: float = 0.15, pitches: int = 3) -> List[Tuple[float, float]]:
+    """A grid of head (yaw, pitch) within ``HeadLimits`` (its ``yaw`` range and ``pitch_range(yaw)``)."""
+    out = []
+    for yaw in np.arange(head_limits.yaw[0], head_limits.yaw[1] + 1e-9, yaw_step):
+        lo, hi = head_limits.pitch_range(float(yaw))
+        out += [(float(yaw), float(pitch)) for pitch in np.linspace(lo, hi, pitches + 2)[1:-1]]
+    return out
+
+
+def _distinct(poses: np.ndarray, scores: np.ndarray, distance: float, limit: int = 8) -> List[np.ndarray]:
+    """Up to ``limit`` poses, best score first, each further than ``distance`` from those kept."""
+    kept: List[np.ndarray] = []
+    for k in np.argsort(-scores, kind="stable"):
+        if all(math.hypot(*(poses[k][:2] - q[:2])) > distance for q in kept):
+            kept.append(poses[k])
+            if len(kept) == limit:
+                break
+    return kept
+
+
+def _group_max(err: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """Largest error of each group, in the order of np.unique(group)."""
+    _, inverse = np.unique(group, return_inverse=True)
+    out = np.full(inverse.max() + 1 if len(inverse) else 0, -np.inf)
+    np.maximum.at(out, inverse, np.nan_to_num(err, nan=np.inf))
+    return out
+
+
+def _mahalanobis(p: np.ndarray, prior: np.ndarray, S: np.ndarray) -> float:
+    d = _difference(tuple(p[:3]), tuple(prior[:3]))
+    return float(d @ np.linalg.solve(S, d))
+
+
 def _difference(a: Pose, b: Pose) -> np.ndarray:
     """a - b with the heading difference wrapped."""
     return np.array([a[0] - b[0], a[1] - b[1], wrap_angle(a[2] - b[2])])
 
 
-def _merge_boxes(boxes: List[List[int]]) -> List[Tuple[int, int, int, int]]:
-    """Boxes (x0, y0, x1, y1) with every overlapping pair replaced by their union, until none overlap."""
-    merged: List[List[int]] = []
+def _merge_boxes(boxes: List[list]) -> List[Tuple[int, int, int, int, float]]:
+    """Boxes (x0, y0, x1, y1, side) with every overlapping pair replaced by their union (smallest side), until none overlap."""
+    merged: List[list] = []
     for box in boxes:
         while True:
             overlapping = [m for m in merged if box[0] < m[2] and m[0] < box[2] and box[1] < m[3] and m[1] < box[3]]
@@ -440,9 +1002,21 @@ def _merge_boxes(boxes: List[List[int]]) -> List[Tuple[int, int, int, int]]:
                 break
             for m in overlapping:
                 merged.remove(m)
-                box = [min(box[0], m[0]), min(box[1], m[1]), max(box[2], m[2]), max(box[3], m[3])]
+                box = [min(box[0], m[0]), min(box[1], m[1]), max(box[2], m[2]), max(box[3], m[3]), min(box[4], m[4])]
         merged.append(box)
-    return [tuple(b) for b in merged]  # type: ignore[misc]
+    return [(int(b[0]), int(b[1]), int(b[2]), int(b[3]), float(b[4])) for b in merged]
+
+
+def _check_transform(T_BC: object) -> np.ndarray:
+    try:
+        T = np.asarray(T_BC, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"T_BC must be a finite 4 x 4 transform, got {type(T_BC).__name__}") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"T_BC must be a finite 4 x 4 transform, got shape {T.shape}")
+    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError("T_BC must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+    return T
 
 
 def _check_pose(pose: object, name: str) -> Pose:

@@ -1,21 +1,27 @@
-"""Robot localization against ground truth: simulator frames with known poses, drawn colour
-landmarks with known projections, odometry composition and covariance growth, gates, garbage."""
+"""Robot localization against ground truth: simulator frames with known poses in every landmark
+layout of config/landmarks (walls, low ring, repeated colours, mixed, sparse), with torso roll left
+out of T_BC; drawn colour landmarks with known projections; single-marker ambiguity; odometry
+composition and covariance growth; gates; degenerate and hostile inputs (property-based)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from agent.camera import CameraModel
-from agent.localization import LocalizationParams, RobotLocalizer
+from agent.localization import LocalizationParams, RobotLocalizer, head_directions
 from agent.perception import ImageError, PerceptionParams
 from nao_core.config import CONFIG_DIR, load
-from nao_core.geometry import compose, planar_transform, relative, wrap_angle
+from nao_core.geometry import compose, planar_transform, relative, rot_x, wrap_angle
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_sim.render import COLOURS_BGR
+from nao_sim.scenarios import Room, load_sim_config
 from nao_sim.world import SimWorld
 
 
@@ -43,6 +49,70 @@ def pose_error(pose, truth):
     return math.hypot(pose[0] - truth[0], pose[1] - truth[1]), abs(wrap_angle(pose[2] - truth[2]))
 
 
+def fully_shown(camera: CameraModel, landmarks: LandmarkMap, T_WC: np.ndarray, margin: float = 3.0) -> int:
+    """Landmarks wholly in the image: a marker's four corners (facing the camera), a disc with its rim."""
+    count = 0
+    for lm in landmarks.landmarks:
+        points = lm.aruco_corners() if lm.kind == "aruco" else np.array([lm.position])
+        uv, front = camera.project_world(points, T_WC)
+        if not front.all():
+            continue
+        pad = margin
+        if lm.kind == "aruco" and np.dot(lm.normal, T_WC[:3, 3] - np.asarray(lm.position)) <= 0:
+            continue
+        if lm.kind == "color":
+            pad += camera.K[0, 0] * lm.diameter / 2 / np.linalg.norm(np.asarray(lm.position) - T_WC[:3, 3])
+        count += bool(np.all(uv >= pad) and np.all(uv <= np.array([camera.width, camera.height]) - 1 - pad))
+    return count
+
+
+# -- layouts users make, on rendered frames ------------------------------------------------------
+
+LAYOUTS = {  # landmark file -> room half size of the layout (its header)
+    "sim_room": 3.0,
+    "walls": 2.0,
+    "colours": 2.0,
+    "mixed": 2.0,
+    "sparse": 2.0,
+}
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_layout_fixes_on_rendered_frames_with_roll_left_out_of_T_BC(params, perception, robot, layout):
+    """VGA, the camera 0.6-1.1 m from the object and aimed at it, T_BC missing a torso roll of
+    +-0.3 deg (the sway the kinematics read misses). No prior (cold start: repeated colours are
+    found by the hypothesis search). Of the frames with >= 2 landmarks wholly in view whose
+    predicted fix is well posed (position std <= half the gate), >= 90 % give a fix; every fix is
+    within 5 cm (2 sigma of the ``max_position_std`` gate) and the median within 1 cm."""
+    config = dataclasses.replace(load_sim_config(), landmarks=f"landmarks/{layout}.yaml", room=Room(LAYOUTS[layout], 2.0))
+    world = SimWorld("can", robot, "vga", seed=11, config=config)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, world.landmarks, camera, perception)
+    rng = np.random.default_rng(11)
+    ox, oy = world.scenario.position
+    posed = fixed_posed = 0
+    errors = []
+    for _ in range(30):
+        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
+        truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
+        world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
+        frame = world.render()
+        if fully_shown(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
+            continue
+        _, predicted = localizer.predicted_fix(truth, frame.T_BC)
+        well_posed = predicted is not None and math.sqrt(np.linalg.eigvalsh(predicted[:2, :2])[-1]) <= params.max_position_std / 2
+        fix = localizer.measure(frame.image, rot_x(rng.choice([-1.0, 1.0]) * math.radians(0.3)) @ frame.T_BC)
+        posed += well_posed
+        if fix is None:
+            assert localizer.no_fix_reason
+            continue
+        fixed_posed += well_posed
+        errors.append(pose_error(fix.pose, truth)[0])
+    assert errors, "the sample must give fixes"
+    assert fixed_posed >= 0.9 * posed  # (the sparse layout's views mostly hold one marker: few are well posed)
+    assert max(errors) <= 2 * params.max_position_std and np.median(errors) <= 0.01
+
+
 def test_aruco_fix_within_1cm_and_half_a_degree_at_2m(params, perception, robot, room):
     """Sim VGA frames, the robot 0.5 m from the centre looking out at the markers on the 1.5 m ring."""
     world = SimWorld("can", robot, "vga", seed=5)
@@ -61,19 +131,20 @@ def test_aruco_fix_within_1cm_and_half_a_degree_at_2m(params, perception, robot,
         assert np.all(np.sqrt(np.diag(fix.covariance)) < [0.02, 0.02, 0.02])
 
 
-def test_too_few_landmarks_gives_no_fix(params, perception, robot, room):
+def test_too_few_landmarks_gives_no_fix_with_a_reason(params, perception, robot, room):
     camera = camera_of(robot, "qvga")
     localizer = RobotLocalizer(params, room, camera, perception)
     T_BC = robot.camera_in_robot(0.0, 0.3)
     assert localizer.on_frame(np.full((240, 320, 3), 128, np.uint8), T_BC, (0.0, 0.0, 0.0), 0.0) is None
-    assert localizer.pose is None
-    # One colour disc only (3 points short of a fix), drawn where the map says.
+    assert localizer.pose is None and "0 blobs" in localizer.no_fix_reason
+    # One colour disc only, drawn where the map says.
     lm = next(lm for lm in room.of_kind("color") if lm.id == "green-1")
     pose = (0.5, 0.3, 0.0)
     uv, _ = camera.project_world(np.array([lm.position]), planar_transform(*pose) @ T_BC)
     image = np.full((240, 320, 3), 128, np.uint8)
     cv2.circle(image, tuple(int(round(c)) for c in uv[0]), 6, COLOURS_BGR["green"], -1)
     assert localizer.on_frame(image, T_BC, (0.0, 0.0, 0.0), 1.0) is None and localizer.pose is None
+    assert "1 blobs" in localizer.no_fix_reason
 
 
 def colour_scene(camera: CameraModel, T_WC: np.ndarray, landmarks) -> np.ndarray:
@@ -84,25 +155,47 @@ def colour_scene(camera: CameraModel, T_WC: np.ndarray, landmarks) -> np.ndarray
     return image
 
 
-def test_repeated_colours_are_associated_by_the_prior(params, perception, robot):
-    """Three green and three yellow discs on a wall 2 m ahead; a prior 5 cm / 2 deg off."""
-    landmarks = tuple(
-        Landmark(id=f"{color}-{i}", kind="color", color=color, position=(2.0, y, z))
-        for i, (color, y, z) in enumerate(
-            [("green", -0.6, 0.3), ("green", 0.0, 0.6), ("green", 0.6, 0.3), ("yellow", -0.3, 0.6), ("yellow", 0.3, 0.2), ("yellow", 0.5, 0.7)]
-        )
+WALL_DISCS = tuple(
+    Landmark(id=f"{color}-{i}", kind="color", color=color, position=(2.0, y, z))
+    for i, (color, y, z) in enumerate(
+        [("green", -0.6, 0.3), ("green", 0.0, 0.6), ("green", 0.6, 0.3), ("yellow", -0.3, 0.6), ("yellow", 0.3, 0.2), ("yellow", 0.5, 0.7)]
     )
+)
+
+
+def test_repeated_colours_found_from_a_cold_start_and_by_the_prior(params, perception, robot):
+    """Three green and three yellow discs on a wall 2 m ahead: the hypothesis search finds the
+    correspondences without a prior; a prior 5 cm / 2 deg off associates them directly."""
     camera = camera_of(robot, "vga")
     T_BC = robot.camera_in_robot(0.0, 0.0)
     truth = (0.0, 0.0, 0.02)
-    image = colour_scene(camera, planar_transform(*truth) @ T_BC, landmarks)
-    localizer = RobotLocalizer(params, LandmarkMap(landmarks), camera, perception)
-    assert localizer.on_frame(image, T_BC, (0.0, 0.0, 0.0), 0.0) is None  # no prior: colours repeat, no fix
+    image = colour_scene(camera, planar_transform(*truth) @ T_BC, WALL_DISCS)
+    localizer = RobotLocalizer(params, LandmarkMap(WALL_DISCS), camera, perception)
+    cold = localizer.on_frame(image, T_BC, (0.0, 0.0, 0.0), 0.0)
+    assert cold is not None and sorted(cold.landmark_ids) == sorted(lm.id for lm in WALL_DISCS)
+    assert pose_error(cold.pose, truth)[0] < 0.02
     localizer._correction, localizer.covariance = (0.05, -0.03, 0.02 + math.radians(2)), np.diag([0.05, 0.05, 0.05]) ** 2
     fix = localizer.on_frame(image, T_BC, (0.0, 0.0, 0.0), 1.0)
-    assert fix is not None and sorted(fix.landmark_ids) == sorted(lm.id for lm in landmarks)
+    assert fix is not None and sorted(fix.landmark_ids) == sorted(lm.id for lm in WALL_DISCS)
     distance, angle = pose_error(fix.pose, truth)
     assert distance < 0.02 and angle < math.radians(0.5)
+
+
+def test_symmetric_colours_are_not_guessed(params, perception, robot):
+    """Green, yellow, yellow, green in a row at one height: balls look the same from behind the
+    wall, where the row reads the other way round -> two poses explain the blobs: no fix, and it says why."""
+    landmarks = tuple(
+        Landmark(id=f"{c}-{i}", kind="color", color=c, position=(2.0, y, 0.4))
+        for i, (c, y) in enumerate([("green", -0.45), ("yellow", -0.15), ("yellow", 0.15), ("green", 0.45)])
+    )
+    camera = camera_of(robot, "vga")
+    T_BC = robot.camera_in_robot(0.0, 0.0)
+    image = colour_scene(camera, planar_transform(0.0, 0.0, 0.0) @ T_BC, landmarks)
+    localizer = RobotLocalizer(params, LandmarkMap(landmarks), camera, perception)
+    assert localizer.measure(image, T_BC) is None and "equally" in localizer.no_fix_reason
+    localizer.covariance = np.diag([0.05, 0.05, 0.05]) ** 2
+    fix = localizer.measure(image, T_BC, prior=(0.03, 0.02, 0.01))  # a prior tells the two apart
+    assert fix is not None and pose_error(fix.pose, (0.0, 0.0, 0.0))[0] < 0.02
 
 
 def test_ambiguous_colour_blobs_are_dropped(params, perception, robot):
@@ -113,9 +206,34 @@ def test_ambiguous_colour_blobs_are_dropped(params, perception, robot):
     )
     camera = camera_of(robot, "vga")
     localizer = RobotLocalizer(params, LandmarkMap(landmarks), camera, perception)
-    T_WC = robot.camera_in_robot(0.0, 0.0)
-    image = colour_scene(camera, T_WC, landmarks)
-    assert localizer.detector.color_points(image, camera, T_WC) == ([], [], [])
+    T_BC = robot.camera_in_robot(0.0, 0.0)
+    image = colour_scene(camera, T_BC, landmarks)
+    from agent.localization import PlanarModel
+
+    model = PlanarModel(camera, T_BC)
+    points = localizer.detector.associate(localizer.detector.color_blobs(image), model, np.zeros(4), params.color_gate)
+    assert len(points) == 0
+
+
+def test_single_marker_ambiguity_is_resolved_not_guessed(params, perception, robot):
+    """One marker, far and seen obliquely: its two planar solutions both explain the corners ->
+    no fix without a prior; a prior near the truth picks the true one; a prior between them picks none."""
+    marker = Landmark(id=0, kind="aruco", dictionary="DICT_4X4_50", size=0.15, position=(1.8, 0.0, 0.3), yaw=math.pi + 0.5)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, LandmarkMap((marker,)), camera, perception)
+    T_BC = robot.camera_in_robot(0.0, 0.0)
+    truth = (0.0, 0.0, 0.0)
+    uv, _ = camera.project_world(marker.aruco_corners(), planar_transform(*truth) @ T_BC)
+    rng = np.random.default_rng(0)
+    uv = uv + rng.normal(0.0, params.pixel_sigma, uv.shape)
+    fix = localizer.fit(marker.aruco_corners(), uv, T_BC)
+    if fix is None:  # both solutions fit: it must say so, not pick one
+        assert "two planar solutions" in localizer.no_fix_reason
+    else:  # the corners decided: the right one
+        assert pose_error(fix.pose, truth)[0] < 0.05
+    localizer.covariance = np.diag([0.03, 0.03, 0.03]) ** 2
+    near = localizer.fit(marker.aruco_corners(), uv, T_BC, prior=(0.01, -0.01, 0.005))
+    assert near is not None and pose_error(near.pose, truth)[0] < 0.05
 
 
 def test_odometry_carries_the_pose_and_grows_the_covariance(params, perception, robot, room):
@@ -136,6 +254,8 @@ def test_odometry_carries_the_pose_and_grows_the_covariance(params, perception, 
         localizer.on_odometry(odom, frame.stamp + k + 1)
         assert np.trace(localizer.covariance) > previous
         previous = np.trace(localizer.covariance)
+    # 1 m walked, 0.5 rad turned: the position std grows at least by k_t sqrt(1 m)
+    assert localizer.position_std() >= params.odom_translation_noise * math.sqrt(10 * math.hypot(0.1, 0.02))
     expected = fix.pose
     for _ in range(10):
         expected = compose(expected, step)
@@ -156,7 +276,7 @@ def test_a_jump_is_rejected_until_it_repeats(params, perception, robot, room):
     localizer._odom = (0.0, 0.0, 0.0)
     for k in range(params.max_rejected_jumps - 1):
         assert localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), float(k)) is None
-        assert localizer.pose == pytest.approx((0.5, 0.4, 0.0))
+        assert localizer.pose == pytest.approx((0.5, 0.4, 0.0)) and "jump" in localizer.no_fix_reason
     fix = localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), 10.0)
     assert fix is not None and pose_error(localizer.pose, world.truth()["robot_pose"])[0] < 0.01
 
@@ -181,10 +301,92 @@ def test_bad_transform_or_odometry_raise_value_error(params, robot, room):
     image = np.zeros((240, 320, 3), np.uint8)
     with pytest.raises(ValueError, match="T_BC"):
         localizer.on_frame(image, np.eye(3), (0, 0, 0), 0.0)
+    with pytest.raises(ValueError, match="rigid"):
+        localizer.on_frame(image, 2.0 * np.eye(4), (0, 0, 0), 0.0)
     with pytest.raises(ValueError, match="odom"):
         localizer.on_frame(image, np.eye(4), (0, math.nan, 0), 0.0)
     with pytest.raises(ValueError, match="odom"):
         localizer.on_odometry("abc", 0.0)
+
+
+# -- degenerate and hostile inputs -------------------------------------------------------------
+
+
+def test_degenerate_point_sets_give_no_fix_with_a_reason(params, robot, room):
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, room, camera)
+    T_BC = robot.camera_in_robot(0.0, 0.2)
+    cases = {
+        "one point": (np.array([[2.0, 0.0, 0.3]]), np.array([[320.0, 200.0]])),
+        "repeated point": (np.tile([[2.0, 0.0, 0.3]], (4, 1)), np.tile([[320.0, 200.0]], (4, 1))),
+        "collinear with the camera": (np.array([[1.0, 0.0, 0.4], [2.0, 0.0, 0.3], [3.0, 0.0, 0.2], [4.0, 0.0, 0.1]]),
+                                      np.tile([[320.0, 260.0]], (4, 1))),
+        "behind the camera": (np.array([[-2.0, 0.5, 0.3], [-2.0, -0.5, 0.3], [-2.0, 0.5, 0.6], [-2.0, -0.5, 0.6]]),
+                              np.array([[100.0, 100.0], [500.0, 100.0], [100.0, 400.0], [500.0, 400.0]])),
+        "NaN pixels": (np.array([[2.0, 0.0, 0.3]] * 4), np.full((4, 2), np.nan)),
+    }
+    for name, (X, u) in cases.items():
+        assert localizer.fit(X, u, T_BC) is None, name
+        assert localizer.no_fix_reason, name
+
+
+finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+hostile = st.one_of(finite, st.just(math.nan), st.just(math.inf), st.floats(-1e-9, 1e-9))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n=st.integers(0, 12),
+    data=st.data(),
+    yaw=st.floats(-3.2, 3.2),
+    pitch=st.floats(-1.0, 1.0),
+    roll=st.floats(-0.5, 0.5),
+    prior=st.one_of(st.none(), st.tuples(hostile, hostile, hostile)),
+)
+def test_hostile_correspondences_never_raise(params, robot, room, n, data, yaw, pitch, roll, prior):
+    """Any point set (degenerate, huge, NaN, behind the camera), any rigid T_BC, any prior: a fix or
+    None with a reason, never an exception."""
+    X = np.array(data.draw(st.lists(st.tuples(hostile, hostile, hostile), min_size=n, max_size=n))).reshape(-1, 3)
+    u = np.array(data.draw(st.lists(st.tuples(hostile, hostile), min_size=n, max_size=n))).reshape(-1, 2)
+    localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"))
+    T_BC = rot_x(roll) @ robot.camera_in_robot(yaw, pitch)
+    fix = localizer.fit(X, u, T_BC, prior=prior)
+    assert fix is not None or localizer.no_fix_reason
+    if fix is not None:
+        assert np.all(np.isfinite(fix.pose)) and np.all(np.isfinite(fix.covariance))
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    pose=st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-4.0, 4.0)),
+    head=st.tuples(st.floats(-2.1, 2.1), st.floats(-0.7, 0.6)),
+    roll=st.floats(-0.3, 0.3),
+    odom=st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10)),
+    seed=st.integers(0, 3),
+    discs=st.integers(0, 3),
+)
+def test_hostile_frames_and_poses_never_raise(params, perception, robot, room, pose, head, roll, odom, seed, discs):
+    """Rendered frames from anywhere (edge-on markers, none, two discs drawn over), T_BC rolled by
+    up to 17 degrees, any odometry: on_frame returns a fix or None with a reason."""
+    camera = camera_of(robot, "qvga")
+    world = SimWorld("can", robot, "qvga", seed=seed)
+    world.teleport(pose, head)
+    frame = world.render()
+    image = frame.image.copy()
+    rng = np.random.default_rng(seed)
+    for _ in range(discs):
+        centre = tuple(int(v) for v in rng.integers(0, [camera.width, camera.height]))
+        cv2.circle(image, centre, int(rng.integers(2, 20)), COLOURS_BGR["green"], -1)
+    localizer = RobotLocalizer(params, room, camera, perception)
+    localizer.on_odometry(odom, 0.0)
+    fix = localizer.on_frame(image, rot_x(roll) @ frame.T_BC, odom, 1.0)
+    assert fix is not None or localizer.no_fix_reason
+    localizer._correction, localizer.covariance = (pose[0] + 0.5, pose[1], pose[2]), np.eye(3) * 1e-4  # a wrong prior
+    fix = localizer.on_frame(image, frame.T_BC, odom, 2.0)
+    assert fix is not None or localizer.no_fix_reason
+
+
+# -- tracking, covariance, prediction ----------------------------------------------------------
 
 
 class _Clock:
@@ -234,15 +436,18 @@ def test_fix_covariance_is_not_overconfident(params, perception, robot, room):
         world.teleport(pose, robot.look_at(pose, (ox, oy, 0.1)))
         frame = world.render()
         fix = RobotLocalizer(params, room, camera, perception).on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
+        if fix is None:  # the precision gate may drop a QVGA view
+            continue
         truth = world.truth()["robot_pose"]
         e = np.array([fix.pose[0] - truth[0], fix.pose[1] - truth[1], wrap_angle(fix.pose[2] - truth[2])])
         nees.append(e @ np.linalg.solve(fix.covariance, e))
-    assert np.max(nees) < 11.34 and np.mean(nees) < 3.0
+    assert len(nees) >= 15 and np.max(nees) < 11.34 and np.mean(nees) < 3.0
 
 
 def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perception, robot, room):
     """VGA orbit views: with a prior 3 cm / 1.5 deg off, the boxes around the predicted markers
-    (a fraction of the frame) give the same markers and pose as searching the whole frame; with a
+    (a fraction of the frame, small markers at full size) give the same markers and the pose within
+    a millimetre (the full search refines some corners from the reduced image) as searching the whole frame; with a
     prior 1 m and 90 deg off, the boxes find too few corners and the whole frame is searched."""
     world = SimWorld("can", robot, "vga", seed=2)
     camera = camera_of(robot, "vga")
@@ -254,11 +459,55 @@ def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perc
         frame = world.render()
         near = (truth[0] + 0.03, truth[1] - 0.02, truth[2] + math.radians(1.5))
         boxes = localizer.detector.predicted_boxes(camera, planar_transform(*near) @ frame.T_BC)
-        assert 0 < sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes) < 0.5 * camera.width * camera.height
+        assert 0 < sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1, _ in boxes) < 0.5 * camera.width * camera.height
         full = localizer.measure(frame.image, frame.T_BC)
         for prior in (near, (truth[0] + 1.0, truth[1], truth[2] + math.pi / 2)):
             fix = localizer.measure(frame.image, frame.T_BC, prior)
             assert sorted(fix.landmark_ids) == sorted(full.landmark_ids)
-            assert fix.pose == pytest.approx(full.pose, abs=1e-6)
+            assert fix.pose == pytest.approx(full.pose, abs=2e-3)
             distance, angle = pose_error(fix.pose, truth)
             assert distance < 0.01 and angle < math.radians(0.5)
+
+
+def test_small_far_markers_are_found_at_full_resolution(params, perception, robot):
+    """Wall markers of 8 cm at 2-3 m (16-24 px at VGA, 8-12 px in the reduced image, below
+    ``aruco_min_side_px``): the full-size search finds them."""
+    config = dataclasses.replace(load_sim_config(), landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0))
+    world = SimWorld("can", robot, "vga", seed=3, config=config)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, world.landmarks, camera, perception)
+    pose = (-0.5, 0.0, 0.0)  # 2.5 m from the wall x = +2, looking at it
+    world.teleport(pose, (0.0, 0.0))
+    frame = world.render()
+    gray = cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+    found = localizer.detector.aruco_points(gray)
+    sides = np.linalg.norm(found.u.reshape(-1, 4, 2) - np.roll(found.u.reshape(-1, 4, 2), 1, axis=1), axis=2).min(axis=1)
+    assert len(sides) >= 3 and sides.max() < 2 * params.aruco_min_side_px  # small ones, lost when halved
+    fix = localizer.measure(frame.image, frame.T_BC)
+    assert fix is not None and pose_error(fix.pose, world.truth()["robot_pose"])[0] < 2 * params.max_position_std
+
+
+def test_predicted_fix_and_best_landmark_view(params, perception, robot, tmp_path):
+    """Markers on one wall only, the robot facing away from it: looking ahead predicts no fix; the
+    head direction ``best_landmark_view`` picks turns towards the wall, predicts a fix, and a frame
+    rendered there gives one whose std is of the predicted order."""
+    lines = (CONFIG_DIR / "landmarks" / "walls.yaml").read_text().splitlines()
+    path = tmp_path / "one_wall.yaml"  # the markers of the wall x = +2 only
+    path.write_text("\n".join(line for line in lines if not line.startswith("  - ") or "position: [1.99" in line))
+    one_wall = load_landmark_map(path)
+    config = dataclasses.replace(load_sim_config(), landmarks=str(path), room=Room(2.0, 2.0))
+    world = SimWorld("can", robot, "vga", seed=6, config=config)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, one_wall, camera, perception)
+    pose = (0.3, 0.0, 2.2)  # the wall x = +2 is 1.7 m behind-left
+    assert localizer.predicted_fix(pose, robot.camera_in_robot(0.0, 0.3))[1] is None
+    view = localizer.best_landmark_view(pose, robot.camera_in_robot, head_directions(robot.head))
+    assert view is not None and view.points >= params.min_points
+    wall_bearing = wrap_angle(0.0 - pose[2])  # direction of +x in the robot frame
+    assert abs(wrap_angle(view.yaw - wall_bearing)) < abs(wall_bearing)  # turned towards the wall
+    world.teleport(pose, (view.yaw, view.pitch))
+    frame = world.render()
+    fix = localizer.measure(frame.image, frame.T_BC)
+    assert fix is not None, localizer.no_fix_reason
+    measured = math.sqrt(np.linalg.eigvalsh(fix.covariance[:2, :2])[-1])
+    assert 0.5 * view.position_std < measured < 4.0 * view.position_std  # the residuals may raise sigma above the floor
