@@ -242,8 +242,8 @@ class NaoqiBackend(RobotBackend):
     def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> Optional[CameraFrame]:
         """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
         stamp = self._clock.update(robot_stamp, received)
-        # a capture newer than the newest sample: wait for the next samples (a few periods at most)
-        kin = self.kinematics.wait_at(stamp, 3.0 / self.params.kinematics_rate)
+        # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
+        kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
             self.kinematics_dropped[kin] += 1
             if time.monotonic() - self._last_drop_log > 1.0:  # at most once a second

@@ -12,7 +12,7 @@ import pytest
 
 from nao_bridge.sim_backend import SimBackend
 from nao_core.landmark_map import load_landmark_map
-from nao_core.robot_model import load_robot_model
+from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.render import NEAR
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
@@ -387,6 +387,96 @@ def test_sway_moves_the_camera_while_walking_and_the_reports_see_most_of_it():
     sway = CONFIG.dynamics.sway
     assert 0.5 * sway.lateral < max(deviations) < 2 * (sway.lateral + sway.roll * 0.5)
     assert max(unreported) == pytest.approx((1 - sway.reported_fraction) * max(deviations), rel=0.2)
+
+
+def optical_to_nao(T_optical: np.ndarray) -> np.ndarray:
+    """Undo ``nao_to_optical`` (a constant right factor)."""
+    return T_optical @ np.linalg.inv(nao_to_optical(np.eye(4)))
+
+
+def body_roll_pitch(T_cam_nao: np.ndarray, head) -> tuple:
+    """Roll and pitch of the torso motion T_body = T_cam (nominal T_cam)^-1 = Rx(roll) Ry(pitch) + shift."""
+    R = (T_cam_nao @ np.linalg.inv(ROBOT.camera_in_robot_nao(*head)))[:3, :3]
+    return math.atan2(R[2, 1], R[1, 1]), math.atan2(R[0, 2], R[0, 0])
+
+
+def test_torso_rolls_at_the_sway_frequency_and_pitches_at_the_step_frequency_while_walking():
+    world, clock = world_with_clock()
+    sway, dt = CONFIG.dynamics.sway, CONFIG.dynamics.timestep
+    world.walk(ROBOT.walk.v_max, 0.0, 0.0)  # full speed: amplitude 1
+    clock.advance(20 * CONFIG.dynamics.velocity_time_constant)  # the lag has settled
+    rolls, pitches = [], []
+    for _ in range(int(round(4.0 / dt))):  # 4 s, one sample per world step
+        clock.advance(dt)
+        head = world.head_angles()
+        roll, pitch = body_roll_pitch(world.camera_in_robot_nao(), head)
+        rolls.append(roll)
+        pitches.append(pitch)
+    rolls, pitches = np.array(rolls), np.array(pitches)
+    f = sway.reported_fraction  # what the joint sensors report
+    assert np.abs(rolls).max() == pytest.approx(f * sway.roll, rel=0.01)
+    assert np.abs(pitches).max() == pytest.approx(f * sway.pitch, rel=0.01)
+    crossings = lambda x: int(np.sum(np.sign(x[1:]) != np.sign(x[:-1])))  # noqa: E731
+    assert abs(crossings(rolls) - 2 * sway.frequency * 4.0) <= 1  # two zero crossings a cycle
+    assert abs(crossings(pitches) - 2 * 2 * sway.frequency * 4.0) <= 1  # twice as fast: once a step
+    world.stop_walking()
+    clock.advance(40 * CONFIG.dynamics.velocity_time_constant)
+    assert body_roll_pitch(world.camera_in_robot_nao(), world.head_angles()) == pytest.approx((0.0, 0.0), abs=1e-6)
+
+
+def test_the_true_camera_sways_more_than_the_report_by_the_unreported_fraction():
+    world, clock = world_with_clock()
+    sway = CONFIG.dynamics.sway
+    world.walk(0.0, 0.0, ROBOT.walk.omega_max)  # turning in place sways too
+    clock.advance(20 * CONFIG.dynamics.velocity_time_constant)
+    for _ in range(30):
+        clock.advance(0.037)
+        frame = world.render()
+        T_BW = np.linalg.inv(planar(*world.true_pose()))
+        true_roll, true_pitch = body_roll_pitch(optical_to_nao(T_BW @ np.array(world.truth()["camera"]["T_WC"])),
+                                                (frame.head_yaw, frame.head_pitch))
+        reported_roll, _ = body_roll_pitch(optical_to_nao(frame.T_BC), (frame.head_yaw, frame.head_pitch))
+        assert reported_roll == pytest.approx(sway.reported_fraction * true_roll, abs=1e-9)
+        assert abs(true_roll) <= sway.roll + 1e-9 and abs(true_pitch) <= sway.pitch + 1e-9
+
+
+def test_past_kinematics_and_renders_are_those_read_at_the_time():
+    world, clock = world_with_clock(seed=4)
+    world.walk(0.08, 0.02, 0.3)
+    world.set_head(1.0, 0.2, 0.1)
+    live = []
+    for _ in range(20):
+        clock.advance(0.033)
+        live.append((clock.t, world.head_angles(), world.camera_in_robot_nao(), world.odometry()))
+    renders = {}
+    for t, head, T, odom in live:
+        kin = world.kinematics_at(t)
+        assert kin.head == head and kin.odom == odom
+        np.testing.assert_array_equal(kin.T_BC_nao, T)
+        assert t - CONFIG.dynamics.timestep < kin.stamp <= t + 1e-9
+        renders[t] = world.render(at=t)
+        np.testing.assert_array_equal(renders[t].T_BC, nao_to_optical(T))
+    # a render at a past time draws the true camera of that time: the same as rendering then
+    again, clock_again = world_with_clock(seed=4)
+    again.walk(0.08, 0.02, 0.3)
+    again.set_head(1.0, 0.2, 0.1)
+    clock_again.advance(10 * 0.033)
+    now = again.render()
+    past = world.render(at=clock_again.t)
+    assert past.stamp == pytest.approx(now.stamp) and past.odom == now.odom
+    np.testing.assert_array_equal(world.truth()["camera"]["T_WC"], again.truth()["camera"]["T_WC"])
+
+
+def test_times_outside_the_history_are_refused_with_the_reason():
+    world, clock = world_with_clock()
+    world.walk(0.1, 0.0, 0.0)
+    clock.advance(CONFIG.dynamics.history + 1.0)
+    with pytest.raises(ValueError, match="before the kept history"):
+        world.render(at=clock.t - CONFIG.dynamics.history - 0.5)
+    with pytest.raises(ValueError, match="not in the past"):
+        world.kinematics_at(clock.t + 1.0)
+    with pytest.raises(ValueError, match="not in the past"):
+        world.kinematics_at(float("nan"))
 
 
 def test_head_moves_at_the_commanded_fraction_of_max_speed_and_is_clamped():
