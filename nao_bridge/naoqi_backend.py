@@ -81,7 +81,7 @@ class NaoqiParams:
     use_sensors: bool = True  # odometry and head angles from sensors rather than commands
     clock_window: int = field(default=100, metadata=bounds(1, 100000))  # frames in the offset minimum
     camera_latency_min: float = field(default=0.0, metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
-    kinematics_rate: float = field(default=100.0, metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
+    kinematics_rate: float = field(default=50.0, metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
     kinematics_history: float = field(default=2.0, metadata=bounds(0.2, 60.0))  # s of samples kept
     kinematics_max_gap: float = field(default=0.1, metadata=bounds(0.001, 5.0))  # s, widest gap interpolated over
     client_name: str = "nao_active_recon"

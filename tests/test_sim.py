@@ -636,3 +636,8 @@ def test_a_landmark_colour_the_simulator_cannot_draw_is_named(tmp_path):
     config = dataclasses.replace(CONFIG, landmarks=str(bad))  # an absolute path wins over CONFIG_DIR
     with pytest.raises(ValueError, match="landmark 'x': the simulator has no colour 'ochre'"):
         SimWorld("can", ROBOT, config=config)
+
+
+def test_a_latency_range_upside_down_is_named():
+    with pytest.raises(ValueError, match="noise.latency"):
+        dataclasses.replace(CONFIG.noise, latency=(0.2, 0.1))
