@@ -954,7 +954,7 @@ class RobotLocalizer:
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
 
 
-def head_directions(head_limits, yaw_step: float = 0.15, pitches: int = 3) -> List[Tuple[float, float]]:
+def head_directions(head_limits, yaw_step: float = 0.25, pitches: int = 2) -> List[Tuple[float, float]]:
     """A grid of head (yaw, pitch) within ``HeadLimits`` (its ``yaw`` range and ``pitch_range(yaw)``)."""
     out = []
     for yaw in np.arange(head_limits.yaw[0], head_limits.yaw[1] + 1e-9, yaw_step):
