@@ -342,3 +342,19 @@ def test_unreachable_robot_is_a_connection_error_naming_the_url():
 def test_unknown_resolution_is_refused():
     with pytest.raises(KeyError, match="hd"):
         NaoqiBackend("tcp://127.0.0.1:9", MODEL, NaoqiParams(), "hd", 15.0)
+
+
+def test_a_failing_sampler_read_drops_frames_until_it_recovers():
+    world = SimWorld("can", MODEL, resolution="qvga", seed=8)
+    with StandIn(world, latency=(0.03, 0.05)) as standin:
+        backend = backend_for(standin)
+        backend.start()
+        assert backend.grab_frame(2.0) is not None
+        transform = world.camera_in_robot_nao
+        world.camera_in_robot_nao = lambda: (_ for _ in ()).throw(RuntimeError("joint sensors lost"))
+        outage = [backend.grab_frame(0.5) for _ in range(3)]  # the history stops at the outage
+        world.camera_in_robot_nao = transform
+        recovered = backend.grab_frame(2.0)
+        backend.close()
+    assert outage == [None, None, None] and recovered is not None
+    assert set(backend.kinematics_dropped) <= {"after_history", "history_gap"} and backend.kinematics_dropped
