@@ -144,7 +144,7 @@ class SimWorld:
         self._battery = dyn.battery_initial
         self._frames = 0
         self._last_render: Optional[Tuple[float, np.ndarray]] = None
-        self._history: Deque[_Kinematic] = collections.deque(maxlen=max(2, int(math.ceil(dyn.history / dyn.timestep)) + 1))
+        self._history: Deque[_Kinematic] = collections.deque(maxlen=max(2, math.ceil(dyn.history / dyn.timestep) + 1))
         self._remember()
 
     def _start_pose(self) -> Pose:

@@ -11,7 +11,14 @@ import cv2
 import numpy as np
 import pytest
 
-from nao_bridge.capture_kinematics import AFTER, BEFORE, GAP, KinematicSample, KinematicsHistory, interpolate_transform
+from nao_bridge.capture_kinematics import (
+    AFTER,
+    BEFORE,
+    GAP,
+    KinematicSample,
+    KinematicsHistory,
+    interpolate_transform,
+)
 from nao_bridge.naoqi_backend import (
     COLOR_SPACE_IDS,
     ClockOffset,

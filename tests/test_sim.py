@@ -406,7 +406,7 @@ def test_torso_rolls_at_the_sway_frequency_and_pitches_at_the_step_frequency_whi
     world.walk(ROBOT.walk.v_max, 0.0, 0.0)  # full speed: amplitude 1
     clock.advance(20 * CONFIG.dynamics.velocity_time_constant)  # the lag has settled
     rolls, pitches = [], []
-    for _ in range(int(round(4.0 / dt))):  # 4 s, one sample per world step
+    for _ in range(round(4.0 / dt)):  # 4 s, one sample per world step
         clock.advance(dt)
         head = world.head_angles()
         roll, pitch = body_roll_pitch(world.camera_in_robot_nao(), head)
@@ -416,7 +416,7 @@ def test_torso_rolls_at_the_sway_frequency_and_pitches_at_the_step_frequency_whi
     f = sway.reported_fraction  # what the joint sensors report
     assert np.abs(rolls).max() == pytest.approx(f * sway.roll, rel=0.01)
     assert np.abs(pitches).max() == pytest.approx(f * sway.pitch, rel=0.01)
-    crossings = lambda x: int(np.sum(np.sign(x[1:]) != np.sign(x[:-1])))  # noqa: E731
+    crossings = lambda x: int(np.sum(np.sign(x[1:]) != np.sign(x[:-1])))
     assert abs(crossings(rolls) - 2 * sway.frequency * 4.0) <= 1  # two zero crossings a cycle
     assert abs(crossings(pitches) - 2 * 2 * sway.frequency * 4.0) <= 1  # twice as fast: once a step
     world.stop_walking()
