@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -312,6 +313,47 @@ def test_inconsistent_views_that_disagree_with_each_other_never_restart():
         ekf.update(cam, rng.uniform(-0.5, 0.5), rng.uniform(0.05, 0.4))
     assert ekf.stats.reinitialized == 0
     np.testing.assert_allclose(ekf.x, truth, atol=2e-3)
+
+
+@pytest.mark.parametrize("name", ["can", "remote", "figure", "mug"])
+def test_objects_that_are_not_cylinders_keep_a_consistent_centre(name, robot):
+    """Issue 13: rendered frames of a box, a figure and a mug (and the can) from 48 views around a
+    0.8 m ring, measured by perception: the centre stays within 1.5 cm (issue 12's target for other
+    shapes) of the footprint's centroid (convex hull of the object on the floor), its error is
+    inside the 99.7 % ellipse of P (2-dof NEES), and the width variability c2 is learned for the
+    non-cylinders (so their widths are fused, not gated) while the can keeps c2 = 0."""
+    from agent.perception import PerceptionParams, extract_silhouette, measure_object
+    from nao_core.config import CONFIG_DIR, load
+    from nao_core.geometry import planar_transform
+    from nao_sim.world import SimWorld
+
+    try:
+        world = SimWorld(name, robot, "vga", seed=2)
+    except KeyError as exc:  # the mug arrives with the simulator engineer's scenarios
+        pytest.skip(str(exc))
+    perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
+    camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
+    scenario = world.scenario
+    hull = cv2.convexHull(scenario.world_points()[:, :2].astype(np.float32))
+    m = cv2.moments(hull)
+    centroid = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+    ekf = ObjectEKF(PARAMS)
+    rng = np.random.default_rng(0)
+    for k, a in enumerate(np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)):
+        pose = (scenario.position[0] + 0.8 * math.cos(a), scenario.position[1] + 0.8 * math.sin(a), a + math.pi + rng.uniform(-0.2, 0.2))
+        T_WC = planar_transform(*pose) @ robot.camera_in_robot(*robot.look_at(pose, (*scenario.position, 0.5 * scenario.height)))
+        z = measure_object(extract_silhouette(world.renderer.render(T_WC, k + 1), perception), camera, T_WC, perception)
+        assert z.cut == () and z.delta is not None  # whole silhouettes: the test is about the shape, not the border
+        cam = (T_WC[0, 3], T_WC[1, 3], optical_axis_heading(T_WC))
+        (ekf.update if ekf.initialized else ekf.initialize)(cam, z.phi, z.delta)
+    error = ekf.x[:2] - centroid
+    assert np.hypot(*error) < 0.015
+    assert error @ np.linalg.solve(ekf.P[:2, :2], error) < chi2.ppf(0.997, 2)
+    assert ekf.stats.gated == 0 and ekf.stats.reinitialized == 0
+    if scenario.kind == "cylinder":
+        assert ekf.width.c2 == 0.0 and ekf.stats.width_gated == 0
+    else:
+        assert ekf.width.c2 > 0.0 and ekf.stats.width_gated <= 0.1 * 48
 
 
 @pytest.mark.parametrize("seed, omnidirectional", [(13, False), (23, False), (15, True), (35, True)])
