@@ -16,8 +16,9 @@ Landmark points (image u_i <-> world X_i):
   border are dropped, their centroid is biased). Colours repeat, so a blob is associated with the
   landmark of its colour whose projection from a pose (the prior, or the markers' pose) is
   nearest, within ``color_gate`` px, and only when no other landmark of that colour is within the
-  gate. With no pose to predict from, or when the predicted association gives no fix, a hypothesis
-  search finds the correspondences from a cold start (below).
+  gate. Associated by the prior, ``min_points_with_prior`` blobs give a fix (the prior is the
+  extra constraint). With no pose to predict from, or when the predicted association gives no fix,
+  a hypothesis search finds the correspondences from a cold start (below).
 
 Planar model. The robot stands on the floor: height, roll and pitch come from the kinematics
 (T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
@@ -60,7 +61,8 @@ predicted within ``color_gate`` px (each landmark claimed once). The best consen
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
 Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); position std
-(larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks); a jump from the
+(larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks), or
+``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
 prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
 rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior (then the prior is
 wrong: re-localize). Every frame without a fix leaves its reason in ``no_fix_reason``.
@@ -104,6 +106,7 @@ class LocalizationParams:
     ransac_reprojection_px: float = field(metadata=bounds(0.1, 50.0))  # a marker's corners within this of the joint fit are inliers, px
     hypothesis_gate_px: float = field(metadata=bounds(0.1, 200.0))  # consensus gate around a one-marker hypothesis, px
     min_points: int = field(metadata=bounds(2, 1000))  # fewer landmark points -> no fix
+    min_points_with_prior: int = field(metadata=bounds(2, 1000))  # ... when the prior associated them (it is the extra constraint)
     max_reprojection_px: float = field(metadata=bounds(0.01, 50.0))  # RMS gate on the final fit, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC
@@ -125,6 +128,7 @@ class LocalizationParams:
     aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
     view_margin_px: float = field(metadata=bounds(0.0, 100.0))  # predicted points this close to the border are not counted
     max_position_std: float = field(metadata=bounds(1e-4, 10.0))  # m: a fix less precise than this is no fix
+    max_position_std_with_prior: float = field(metadata=bounds(1e-4, 10.0))  # m: the same with a prior (the fusion weighs it)
 
 
 @dataclass(frozen=True)
@@ -639,8 +643,9 @@ class RobotLocalizer:
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
-        if std > self.params.max_position_std:
-            raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {self.params.max_position_std * 100:.1f} cm "
+        limit = self.params.max_position_std if prior_p is None else self.params.max_position_std_with_prior
+        if std > limit:
+            raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
                         f"({len(points.landmark_ids)} landmarks, far or bunched)")
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ model.T_BC)
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
@@ -764,16 +769,20 @@ class RobotLocalizer:
             return fits[0]
         if prior is not None:
             points = markers + self.detector.associate(centroids, model, prior, self.params.color_gate)
-            if len(points) >= self.params.min_points:
+            if len(points) >= self.params.min_points_with_prior:
                 try:
-                    return self._joint(model, points, prior)
+                    return self._joint(model, points, prior, self.params.min_points_with_prior)
                 except NoFix:
                     pass
+        if len(markers) + sum(len(v) for v in centroids.values()) < self.params.min_points:
+            raise NoFix(f"{sum(len(v) for v in centroids.values())} blobs and {len(markers)} marker corners: "
+                        f"fewer than {self.params.min_points} points" + (" (none associated by the prior)" if prior is not None else ""))
         return self._colour_search(model, markers, centroids)
 
-    def _joint(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
-        if len(points) < self.params.min_points:
-            raise NoFix(f"{len(points)} points, fewer than {self.params.min_points}")
+    def _joint(self, model: PlanarModel, points: _Points, seed: Sequence[float], min_points: Optional[int] = None):
+        min_points = self.params.min_points if min_points is None else min_points
+        if len(points) < min_points:
+            raise NoFix(f"{len(points)} points, fewer than {min_points}")
         p, rms, err, H = self._refine(model, points, seed)
         if not np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px):
             raise NoFix("points disagree with the joint fit")
@@ -1014,7 +1023,9 @@ def _check_transform(T_BC: object) -> np.ndarray:
         raise ValueError(f"T_BC must be a finite 4 x 4 transform, got {type(T_BC).__name__}") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"T_BC must be a finite 4 x 4 transform, got shape {T.shape}")
-    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3) or not np.allclose(T[3], [0, 0, 0, 1]):
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: not orthonormal either
+        rigid = np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3) and np.allclose(T[3], [0, 0, 0, 1])
+    if not rigid:
         raise ValueError("T_BC must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
     return T
 
