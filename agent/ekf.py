@@ -508,6 +508,14 @@ class ObjectEKF:
         self._gate = {dof: float(chi2.ppf(params.gate_probability, dof)) for dof in (1, 2)}
         self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
 
+    @classmethod
+    def from_estimate(cls, params: EKFParams, x: np.ndarray, P: np.ndarray) -> "ObjectEKF":
+        """A filter already running on the Cartesian estimate (x, P), as one fused view."""
+        ekf = cls(params)
+        ekf._state = CartesianState(np.array(x, dtype=float), np.array(P, dtype=float))
+        ekf._fused = 1
+        return ekf
+
     @property
     def initialized(self) -> bool:
         return self._state is not None

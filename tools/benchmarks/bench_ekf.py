@@ -112,8 +112,7 @@ def run() -> str:
     z1 = measure(truth, cam1) + np.radians([0.3, -0.2])
     first_view = ObjectEKF(plain)
     first_view.initialize(cam0, *measure(truth, cam0))
-    base = ObjectEKF(plain)  # a filter on (xo, yo, r) from that start, as after the inverse-range phase
-    base.x, base.P = first_view.x, first_view.P
+    base = ObjectEKF.from_estimate(plain, first_view.x, first_view.P)  # on (xo, yo, r), as after the inverse-range phase
 
     # Same inputs, same result.
     ours = base.copy()
@@ -123,8 +122,7 @@ def run() -> str:
     _filterpy_step(ref, cam1, z1.reshape(2, 1))
     assert np.allclose(ours.x, ref.x[:, 0], rtol=1e-9) and np.allclose(ours.P, ref.P, rtol=1e-9, atol=1e-15)
 
-    iterated = ObjectEKF(params)
-    iterated.x, iterated.P = base.x, base.P
+    iterated = ObjectEKF.from_estimate(params, base.x, base.P)
 
     def ours_step(start: ObjectEKF) -> None:
         f = start.copy()
