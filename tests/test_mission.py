@@ -10,7 +10,8 @@ import pytest
 from agent.mission import Mission, MissionParams, Outcome, Phase
 from nao_core.config import CONFIG_DIR, ConfigError, load
 
-P = MissionParams(max_duration=100.0, init_timeout=2.0, search_head_yaws=(0.0, 0.5, -0.5), search_dwell=1.0,
+DEFAULTS = load(MissionParams, [CONFIG_DIR / "mission.yaml"], section="mission")
+P = dataclasses.replace(DEFAULTS, max_duration=100.0, init_timeout=2.0, search_head_yaws=(0.0, 0.5, -0.5), search_dwell=1.0,
                   search_turn_rate=0.5, search_max_turns=1.0, object_lost_timeout=3.0,
                   landmarks_lost_timeout=5.0, stop_timeout=1.0)
 DT = 0.1
@@ -37,8 +38,11 @@ def active_mission() -> tuple[Mission, float]:
     return mission, 0.2
 
 
-def test_default_yaml_matches_dataclass_defaults():
-    assert load(MissionParams, [CONFIG_DIR / "mission.yaml"], section="mission") == MissionParams()
+def test_defaults_live_in_the_yaml_only():
+    """config/mission.yaml is the one source of the defaults: the dataclass cannot be built without it."""
+    with pytest.raises(TypeError):
+        MissionParams()
+    assert DEFAULTS.no_fix_timeout > DEFAULTS.landmarks_lost_timeout > 0
 
 
 def test_bad_value_is_named(tmp_path):
