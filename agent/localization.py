@@ -53,7 +53,9 @@ corners (turned either way about the line of sight, IPPE's two solutions): both 
 refinement; the one that explains the corners within ``max_reprojection_px`` alone wins, or the
 one the prior's Mahalanobis distance prefers; when neither is decided, there is no fix.
 
-Cold start with repeated colours: every pair of blobs and every pair of distinct landmarks of
+Cold start with repeated colours: of the ``max_search_blobs`` largest blobs (round-robin over the
+colours; clutter of a landmark colour must not make the search explode), every pair of blobs and
+every pair of distinct landmarks of
 their colours is a minimal hypothesis (the linear seed on two points); those with |(a, b)| within
 ``pair_scale_tolerance`` of 1 are scored by the blobs that have a landmark of their colour
 predicted within ``color_gate`` px (each landmark claimed once). The best consensus of at least
@@ -110,6 +112,7 @@ class LocalizationParams:
     max_reprojection_px: float = field(metadata=bounds(0.01, 50.0))  # RMS gate on the final fit, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC
+    max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
@@ -444,9 +447,10 @@ class LandmarkDetector:
         out = {}
         for name in self.colors:
             color = self.perception.colors[name]
-            contours, _, _ = blobs(color_mask(hsv, color), min_area)
+            contours, areas, _ = blobs(color_mask(hsv, color), min_area)
             centres = []
-            for contour in contours:
+            for k in np.argsort(-areas, kind="stable"):  # largest first: the search keeps the first few
+                contour = contours[k]
                 x, y, w, h = cv2.boundingRect(contour)
                 if not _off_border((x, y, w, h), half.shape):
                     continue
@@ -790,8 +794,11 @@ class RobotLocalizer:
 
     def _colour_search(self, model: PlanarModel, markers: _Points, centroids: Dict[str, np.ndarray]):
         """Cold start: two-blob hypotheses over colour-consistent landmark pairs (module docstring)."""
-        blobs_uv = np.vstack([uv for uv in centroids.values()]) if centroids else np.empty((0, 2))
-        blob_colour = [name for name, uv in centroids.items() for _ in range(len(uv))]
+        # at most max_search_blobs blobs, the largest of each colour first, round-robin over colours
+        ranked = sorted(((k, name, uv) for name, uvs in centroids.items() for k, uv in enumerate(uvs)), key=lambda t: t[0])
+        ranked = ranked[: self.params.max_search_blobs]
+        blobs_uv = np.array([uv for _, _, uv in ranked], dtype=float).reshape(-1, 2)
+        blob_colour = [name for _, name, _ in ranked]
         if len(blobs_uv) + len(markers) < self.params.min_points:
             raise NoFix(f"{len(blobs_uv)} blobs and {len(markers)} marker corners: fewer than {self.params.min_points} points")
         lms = self.detector.color_landmarks
