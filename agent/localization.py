@@ -72,7 +72,13 @@ wrong: re-localize). Every frame without a fix leaves its reason in ``no_fix_rea
 Odometry: the pose is W <- odometry-frame correction C composed with the odometry pose,
 p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |dtheta|) grows
 
-    P <- F P F^T + G Q G^T,  Q = diag(k_t^2 l, k_t^2 l, k_r^2 (l + |dtheta|)),
+    P <- F P F^T + G Q G^T,
+    Q = diag(k_t^2 l + k_s^2 ((L + l)^2 - L^2) (twice),  k_r^2 (l + |dtheta|) + k_w^2 ((A + |dtheta|)^2 - A^2)),
+
+where L and A are the distance walked and the angle turned since the last fix: the random walk
+(k_t, k_r) grows the variance linearly, the walk's speed and turn scale errors (k_s, k_w: a few
+percent on a NAO, the same all along) grow the std linearly, so P after L metres holds
+k_t^2 L + k_s^2 L^2 and ``position_std()`` says what dead reckoning is worth.
 
 and a fix is fused as a Kalman update with identity measurement: K = P (P + R)^-1,
 p <- p + K wrap(z - p), P <- (I - K) P, then C = p (-) o_capture.
@@ -123,6 +129,8 @@ class LocalizationParams:
     color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # colour landmarks only below this many ArUco corners
     odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
+    odom_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_s, std of the walk's speed scale error
+    odom_turn_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_w, std of the turn scale error
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
     aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
     aruco_min_side_px: float = field(metadata=bounds(4.0, 200.0))  # px, smallest marker side the detector is asked to find (in its image)
@@ -508,6 +516,7 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
+        self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
 
     def reset(self) -> None:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
@@ -540,8 +549,12 @@ class RobotLocalizer:
             G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             length = math.hypot(dx, dy)
             kt, kr = self.params.odom_translation_noise, self.params.odom_rotation_noise
-            Q = np.diag([kt**2 * length, kt**2 * length, kr**2 * (length + abs(dtheta))])
-            self.covariance = F @ self.covariance @ F.T + G @ Q @ G.T
+            ks, kw = self.params.odom_scale_error, self.params.odom_turn_scale_error
+            walked, turned = self._since_fix
+            q_xy = kt**2 * length + ks**2 * ((walked + length) ** 2 - walked**2)
+            q_theta = kr**2 * (length + abs(dtheta)) + kw**2 * ((turned + abs(dtheta)) ** 2 - turned**2)
+            self._since_fix = (walked + length, turned + abs(dtheta))
+            self.covariance = F @ self.covariance @ F.T + G @ np.diag([q_xy, q_xy, q_theta]) @ G.T
         self._odom, self._stamp = odom, stamp
 
     def position_std(self) -> float:
@@ -968,6 +981,7 @@ class RobotLocalizer:
         self.covariance = 0.5 * (P + P.T)
         fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
+        self._since_fix = (0.0, 0.0)
 
 
 def head_directions(head_limits, yaw_step: float = 0.25, pitches: int = 2) -> List[Tuple[float, float]]:

@@ -511,3 +511,58 @@ def test_predicted_fix_and_best_landmark_view(params, perception, robot, tmp_pat
     assert fix is not None, localizer.no_fix_reason
     measured = math.sqrt(np.linalg.eigvalsh(fix.covariance[:2, :2])[-1])
     assert 0.5 * view.position_std < measured < 4.0 * view.position_std  # the residuals may raise sigma above the floor
+
+
+def test_dead_reckoning_covariance_says_what_it_is_worth(params, perception, robot, room):
+    """After a fix, 15 s of walking on odometry alone (the simulator's per-run speed and turn scale
+    errors and slip): the position error stays within the 2-D 99 % bound sqrt(9.21) of the
+    reported ``position_std()``, and the std grows at least linearly with the distance (k_s L)."""
+    for seed in (0, 2, 3, 4, 6):
+        clock = _Clock()
+        world = SimWorld("can", robot, "qvga", seed=seed, clock=clock)
+        localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"), perception)
+        world.set_head(*robot.look_at(world.truth()["robot_pose"], (*world.scenario.position, 0.1)), 1.0)
+        clock.t += 1.0
+        frame = world.render()
+        assert localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp) is not None
+        world.walk(0.08, 0.0, 0.15 * (-1) ** seed)
+        start = world.state().odom
+        for _ in range(150):
+            clock.t += 0.1
+            state = world.state()
+            localizer.on_odometry(state.odom, state.stamp)
+        truth = world.truth()["robot_pose"]
+        error = pose_error(localizer.pose, truth)[0]
+        walked = 0.08 * 15 * 0.9  # about 1.1 m (the velocity lag eats a little)
+        assert localizer.position_std() >= params.odom_scale_error * walked
+        assert error <= math.sqrt(9.21) * localizer.position_std(), seed
+        assert math.hypot(*np.subtract(state.odom[:2], start[:2])) > 0.5  # it did walk
+
+
+def test_alternating_gaze_keeps_the_pose_in_a_wall_layout(params, perception, robot):
+    """Wall markers (config/landmarks/walls.yaml), VGA, walking with the simulator's torso sway:
+    the head aims at the object and, while the pose std exceeds 1 cm, every third frame turns to
+    ``best_landmark_view``. The tracked pose stays within 2 sigma of the precision gate (5 cm) and
+    its median error within 1 cm."""
+    clock = _Clock()
+    config = dataclasses.replace(load_sim_config(), landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0))
+    world = SimWorld("can", robot, "vga", seed=3, config=config, clock=clock)
+    localizer = RobotLocalizer(params, world.landmarks, camera_of(robot, "vga"), perception)
+    obj = (*world.scenario.position, 0.1)
+    directions = head_directions(robot.head)
+    world.walk(0.08, 0.0, 0.08)
+    errors = []
+    for k in range(60):
+        clock.t += 0.1
+        pose = localizer.pose or world.truth()["robot_pose"]  # the truth only until the first fix
+        view = localizer.best_landmark_view(pose, robot.camera_in_robot, directions) if localizer.position_std() > 0.01 and k % 3 == 0 else None
+        world.set_head(*((view.yaw, view.pitch) if view else robot.look_at(pose, obj)), 1.0)
+        state = world.state()
+        localizer.on_odometry(state.odom, state.stamp)
+        clock.t += 0.1
+        frame = world.render()
+        localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
+        if localizer.pose is not None:
+            errors.append(pose_error(localizer.pose, world.truth()["robot_pose"])[0])
+    assert len(errors) >= 50
+    assert max(errors) <= 2 * params.max_position_std and np.median(errors) <= 0.01
