@@ -514,6 +514,7 @@ class RobotLocalizer:
         self.covariance = np.full((3, 3), np.nan)
         self.rejected_jumps = 0
         self.no_fix_reason = ""
+        self.landmarks_seen = 0  # map markers and landmark-coloured blobs in the last frame (for failure reasons)
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
         self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
@@ -585,6 +586,7 @@ class RobotLocalizer:
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None) -> Optional[PoseFix]:
         """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why)."""
         self.no_fix_reason = ""
+        self.landmarks_seen = 0
         try:
             return self._measure(image, _check_transform(T_BC), prior)
         except NoFix as reason:
@@ -628,6 +630,7 @@ class RobotLocalizer:
     def _solve(self, model: PlanarModel, markers: _Points, colour_blobs: Callable[[], Dict[str, np.ndarray]],
                prior_p: Optional[np.ndarray]) -> PoseFix:
         """Markers fitted jointly, colour blobs added (or searched) when they are few (module docstring)."""
+        self.landmarks_seen = len(np.unique(markers.group))
         reasons = []
         fit = None
         seeds: List[np.ndarray] = []  # poses to associate colour blobs from
@@ -643,6 +646,7 @@ class RobotLocalizer:
         if (fit is None or len(fit[0]) < self.params.color_below_aruco_points) and self.detector.colors:
             centroids = {k: model.undistort(v) for k, v in colour_blobs().items()}
             n_blobs = sum(len(v) for v in centroids.values())
+            self.landmarks_seen += n_blobs
             try:
                 fit = self._fit_with_colours(model, markers if fit is None else fit[0], seeds, centroids, prior_p)
             except NoFix as reason:

@@ -136,7 +136,7 @@ def test_too_few_landmarks_gives_no_fix_with_a_reason(params, perception, robot,
     localizer = RobotLocalizer(params, room, camera, perception)
     T_BC = robot.camera_in_robot(0.0, 0.3)
     assert localizer.on_frame(np.full((240, 320, 3), 128, np.uint8), T_BC, (0.0, 0.0, 0.0), 0.0) is None
-    assert localizer.pose is None and "0 blobs" in localizer.no_fix_reason
+    assert localizer.pose is None and "0 blobs" in localizer.no_fix_reason and localizer.landmarks_seen == 0
     # One colour disc only, drawn where the map says.
     lm = next(lm for lm in room.of_kind("color") if lm.id == "green-1")
     pose = (0.5, 0.3, 0.0)
@@ -144,7 +144,7 @@ def test_too_few_landmarks_gives_no_fix_with_a_reason(params, perception, robot,
     image = np.full((240, 320, 3), 128, np.uint8)
     cv2.circle(image, tuple(int(round(c)) for c in uv[0]), 6, COLOURS_BGR["green"], -1)
     assert localizer.on_frame(image, T_BC, (0.0, 0.0, 0.0), 1.0) is None and localizer.pose is None
-    assert "1 blobs" in localizer.no_fix_reason
+    assert "1 blobs" in localizer.no_fix_reason and localizer.landmarks_seen == 1
 
 
 def colour_scene(camera: CameraModel, T_WC: np.ndarray, landmarks) -> np.ndarray:
