@@ -61,7 +61,7 @@ from numba import njit
 
 from agent.camera import CameraModel
 from agent.ekf import position_std
-from agent.mesh import occupancy_to_mesh
+from agent.mesh import ColourView, colour_vertices, occupancy_to_mesh
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import invert
 
@@ -86,6 +86,7 @@ class CarvingParams:
     max_voxels: int = field(default=1 << 26, metadata=bounds(1, 1 << 31))
     dilation: int = field(default=0, metadata=bounds(0, 50))
     floor_prior: bool = False
+    mesh_smoothing: float = field(default=1.0, metadata=bounds(0.0, 5.0))  # sigma of the mesh's field, voxels (agent/mesh.py)
 
 
 def load_carving_params(overrides: Sequence[Union[str, Path]] = ()) -> CarvingParams:
@@ -196,6 +197,16 @@ def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
     return cv2.dilate(ideal, np.ones((3, 3), np.uint8))
 
 
+def _pinhole_image(image: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """The colour image as seen by the ideal pinhole with the same K (bilinear)."""
+    dist = np.asarray(camera.dist, dtype=float).ravel()
+    if not np.any(dist):
+        return image
+    K = np.asarray(camera.K, dtype=float)
+    map_x, map_y = _undistort_maps(K.tobytes(), dist.tobytes(), (camera.width, camera.height))
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _dilated(silhouette: np.ndarray, radius: int) -> np.ndarray:
     """The silhouette grown by a disk of ``radius`` pixels (absorbs pose and edge errors)."""
     if radius <= 0:
@@ -287,6 +298,7 @@ class VoxelCarver:
         self._plain = VoxelCarver(lo, hi, pitch, dataclasses.replace(params, floor_prior=False), footprint) if params.floor_prior else None
         self._evidence: List[Tuple[np.ndarray, np.ndarray]] = []
         self._occupancy: Optional[Tuple[int, np.ndarray]] = None
+        self._colour_views: List[ColourView] = []  # keyframe images for the mesh's vertex colours
 
     @classmethod
     def from_estimate(
@@ -328,9 +340,16 @@ class VoxelCarver:
             seen[inside] |= silhouette[v[inside], u[inside]] > 0
         return seen
 
-    def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> int:
-        """Carve with one silhouette; returns the number of voxels it removed."""
-        silhouette = _dilated(_pinhole_mask(*_checked_view(mask, camera, T_WC)), self.params.dilation)
+    def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray, image: Optional[np.ndarray] = None) -> int:
+        """Carve with one silhouette; returns the number of voxels it removed. ``image`` (BGR, the
+        camera's size) is kept for the mesh's vertex colours."""
+        pinhole = _pinhole_mask(*_checked_view(mask, camera, T_WC))
+        if image is not None:
+            if np.shape(image) != (camera.height, camera.width, 3) or np.asarray(image).dtype != np.uint8:
+                raise ValueError(f"image: expected a {camera.height} x {camera.width} x 3 uint8 BGR image, got {np.shape(image)}")
+            self._colour_views.append((_pinhole_image(np.asarray(image), camera), pinhole, np.asarray(camera.K, dtype=float),
+                                       np.asarray(T_WC, dtype=float)))
+        silhouette = _dilated(pinhole, self.params.dilation)
         P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
         if self._plain is not None:
             self._plain.add_view(mask, camera, T_WC)
@@ -346,8 +365,9 @@ class VoxelCarver:
         return int(removed)
 
     def to_mesh(self) -> trimesh.Trimesh:
-        """Closed mesh of the hull (marching cubes at 0.5 on the padded occupancy), world units."""
-        return occupancy_to_mesh(self.occupancy, self.origin, self.pitch)
+        """Closed, smooth mesh of the hull (marching cubes on the smoothed occupancy, agent/mesh.py), world units."""
+        mesh = occupancy_to_mesh(self.occupancy, self.origin, self.pitch, self.params.mesh_smoothing)
+        return colour_vertices(mesh, self._colour_views) if self._colour_views else mesh
 
     def save_npz(self, path: Union[str, Path]) -> Path:
         """Write ``occupancy`` (bool), ``origin`` (centre of voxel 0, m) and ``pitch`` (m)."""
@@ -386,11 +406,16 @@ def carve(
     pitch: Optional[float] = None,
     params: CarvingParams = CarvingParams(),
     footprint: Optional[Tuple[float, float, float]] = None,
+    images: Sequence[Optional[np.ndarray]] = (),
 ) -> VoxelCarver:
-    """Offline carving of all ``views`` (same grid as adding them one by one, in any order)."""
+    """Offline carving of all ``views`` (same grid as adding them one by one, in any order); ``images``
+    (BGR, one per view or None) colour the mesh."""
     carver = VoxelCarver(bounds_min, bounds_max, pitch, params, footprint)
-    for mask, camera, T_WC in views:
-        carver.add_view(mask, camera, T_WC)
+    views = list(views)
+    if images and len(images) != len(views):
+        raise ValueError(f"images: {len(images)} given for {len(views)} views")
+    for index, (mask, camera, T_WC) in enumerate(views):
+        carver.add_view(mask, camera, T_WC, images[index] if images else None)
     return carver
 
 

@@ -6,7 +6,7 @@ holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 
-    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + mu |w|^2 + c_clear
+    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + mu |w|^2 + c_clear
 
 evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{t+D}):
 
@@ -19,6 +19,17 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
     c_r  coverage      "corrected": 1 - N_v / N_0;   "paper": N_v / N_0 (minimizing it avoids coverage)
                        N_v: bins seen over the executed path and the horizon (:mod:`agent.coverage`)
     c_d  distance      "standoff": ((d - d_min) / d_min)^2;   "paper": d_min / d,   d = |o - p_{t+D}|
+    c_h  vertical view (not in the paper): mean over the horizon of e_k^2, the angle (rad) by which the
+                       object's vertical extent, base z = 0 to top H, misses the vertical field of view
+                       reachable with the head pitch limits at the head yaw used (pitch_by_yaw). With the
+                       camera at height h_c and distance d_k from the centre (pitch and angles positive down):
+                       base depression a_b = atan2(h_c, d_k - r) (near edge), top a_t = atan2(h_c - H, d_k + r)
+                       (far edge), m a margin, vfov/2 = h_v, [p_lo, p_hi] the pitch limits at yaw_k:
+                       e_k = max(0, a_b + m - p_hi - h_v) + max(0, p_lo - h_v - a_t + m)
+                             + max(0, a_b - a_t + 2 m - 2 h_v)
+                       (base below the reachable view, top above it, extent taller than the view). It
+                       pushes the orbit out when the head is turned far (small p_hi) or, walking
+                       omnidirectionally, turns the body toward the object (small yaw, larger p_hi).
     c_clear            hard clearance: W_clear sum_k max(0, r + clearance + m_k - |o - p_k|)^2 over the
                        horizon, W_clear = 1e6, so any sequence keeping the clearance beats any that
                        breaks it, and when none can, the least violating one wins. m_k is the
@@ -66,12 +77,13 @@ FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient
 
 @dataclass(frozen=True)
 class Weights:
-    """lambda_l, lambda_v, lambda_r, lambda_d and mu of the cost."""
+    """lambda_l, lambda_v, lambda_r, lambda_d, lambda_h and mu of the cost."""
 
     uncertainty: float = field(metadata=bounds(0.0, 1e9))
     view: float = field(metadata=bounds(0.0, 1e9))
     coverage: float = field(metadata=bounds(0.0, 1e9))
     distance: float = field(metadata=bounds(0.0, 1e9))
+    vertical: float = field(metadata=bounds(0.0, 1e9))  # lambda_h
     effort: float = field(metadata=bounds(0.0, 1e9))
 
 
@@ -125,6 +137,8 @@ class PlannerParams:
     coverage_form: Literal["corrected", "paper"]
     distance_form: Literal["standoff", "paper"]
     weights: Weights
+    vertical_margin: float = field(metadata=bounds(0.0, 0.5))  # m of c_h: rad kept between the object and the image border
+    object_height: float = field(metadata=bounds(0.01, 5.0))  # H assumed until the silhouettes bound the top, m
     coverage: CoverageParams
     optimizer: Literal["cem", "nelder_mead"]
     cem: CEMParams
@@ -165,6 +179,38 @@ def distance_cost(d: np.ndarray, d_min: float, form: str = "standoff") -> np.nda
     """c_d: ((d - d_min) / d_min)^2 ("standoff") or d_min / d ("paper")."""
     d = np.asarray(d, dtype=float)
     return d_min / d if form == "paper" else np.square((d - d_min) / d_min)
+
+
+@dataclass(frozen=True)
+class VerticalView:
+    """What c_h needs of the robot: camera height h_c (m), vfov/2 h_v (rad), the pitch_by_yaw table."""
+
+    camera_height: float
+    half_vfov: float
+    pitch_by_yaw: np.ndarray  # rows (yaw, pitch_min, pitch_max), rad
+
+    @classmethod
+    def for_robot(cls, robot: RobotModel, resolution: str) -> "VerticalView":
+        camera = CameraModel.from_intrinsics(robot.camera.intrinsics(resolution))
+        half_vfov = math.atan2(camera.height / 2.0, float(camera.K[1, 1]))
+        return cls(robot.neck_height + robot.camera.offset[2], half_vfov, np.asarray(robot.head.pitch_by_yaw, dtype=float))
+
+
+def vertical_view_cost(
+    distance: np.ndarray, yaw: np.ndarray, radius: float, height: float, view: VerticalView, margin: float
+) -> np.ndarray:
+    """c_h: mean over the horizon (last axis) of e_k^2 for camera-to-centre distances and head yaws (..., D)."""
+    table = view.pitch_by_yaw
+    p_lo, p_hi = np.interp(yaw, table[:, 0], table[:, 1]), np.interp(yaw, table[:, 0], table[:, 2])
+    h_c, h_v = view.camera_height, view.half_vfov
+    base = np.arctan2(h_c, np.maximum(distance - radius, 1e-3))
+    top = np.arctan2(h_c - height, distance + radius)
+    excess = (
+        np.maximum(base + margin - p_hi - h_v, 0.0)
+        + np.maximum(p_lo - h_v - top + margin, 0.0)
+        + np.maximum(base - top + 2.0 * margin - 2.0 * h_v, 0.0)
+    )
+    return np.mean(np.square(excess), axis=-1)
 
 
 def effort_cost(omegas: np.ndarray) -> np.ndarray:
@@ -234,6 +280,7 @@ class Planner:
         camera_offset: float = 0.0,
         ekf: Optional[EKFParams] = None,
         seed: int = 0,
+        vertical_view: Optional[VerticalView] = None,
     ):
         if params.speed > walk_limits.v_max:
             raise ValueError(f"planner.speed {params.speed} m/s exceeds the robot's v_max {walk_limits.v_max} m/s")
@@ -244,6 +291,7 @@ class Planner:
         self.hfov = camera_hfov
         self.head_yaw_limits = (float(head_yaw_limits[0]), float(head_yaw_limits[1]))
         self.camera_offset = camera_offset
+        self.vertical_view = vertical_view  # None: c_h is not evaluated (no robot geometry given)
         self.reach = (self.head_yaw_limits[0] - 0.5 * camera_hfov, self.head_yaw_limits[1] + 0.5 * camera_hfov)
         self._R = None if ekf is None else ekf.R
         self._Q_step = None if ekf is None else ekf.Q(params.period)
@@ -260,7 +308,8 @@ class Planner:
     ) -> "Planner":
         """A planner with the walk limits, field of view, head yaw limits and camera offset of ``robot``."""
         hfov = CameraModel.from_intrinsics(robot.camera.intrinsics(resolution)).hfov
-        return cls(params, robot.walk, hfov, robot.head.yaw, robot.camera.offset[0], ekf, seed)
+        vertical = VerticalView.for_robot(robot, resolution)
+        return cls(params, robot.walk, hfov, robot.head.yaw, robot.camera.offset[0], ekf, seed, vertical)
 
     @property
     def omega_max(self) -> float:
@@ -271,11 +320,12 @@ class Planner:
         self._previous = None
 
     def cost_function(
-        self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray
+        self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray, height: Optional[float] = None
     ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
         """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief."""
         p, w = self.params, self.params.weights
         target = x[:2]
+        height = p.object_height if height is None else height
 
         def evaluate(decisions: np.ndarray) -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
             omegas, lateral = self._split(decisions)
@@ -292,6 +342,7 @@ class Planner:
                 "coverage": w.coverage * coverage_cost(n_seen, p.coverage.bins, p.coverage_form),
                 "distance": w.distance * distance_cost(dist[:, -1], p.d_min, p.distance_form),
                 "effort": w.effort * effort_cost(omegas),
+                "vertical": self._vertical(poses, cams, x, height),
                 "clearance": clearance_cost(
                     dist, x[2], p.clearance, clearance_margin(poses, x, P, p.clearance_sigmas, p.clearance_margin_max)
                 ),
@@ -300,14 +351,28 @@ class Planner:
 
         return evaluate
 
-    def plan(self, robot_pose, x, P, coverage: Coverage) -> Plan:
-        """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P)."""
+    def _vertical(self, poses: np.ndarray, cams: np.ndarray, x: np.ndarray, height: float) -> np.ndarray:
+        """l_h c_h of the predicted robot and camera poses (K, D, 3); zeros without the robot's geometry."""
+        if self.vertical_view is None or self.params.weights.vertical == 0.0:
+            return np.zeros(len(poses))
+        distance = np.hypot(x[0] - cams[..., 0], x[1] - cams[..., 1])
+        yaw = wrap_angle(cams[..., 2] - poses[..., 2])
+        cost = vertical_view_cost(distance, yaw, float(x[2]), height, self.vertical_view, self.params.vertical_margin)
+        return self.params.weights.vertical * cost
+
+    def plan(self, robot_pose, x, P, coverage: Coverage, object_height: Optional[float] = None) -> Plan:
+        """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P).
+
+        ``object_height``: the object's top above the floor, m, when the silhouettes bound it (else the
+        configured ``object_height``)."""
         robot_pose = _checked("robot_pose", robot_pose, (3,))
         x = _checked("x", x, (3,))
         P = _checked("P", P, (3, 3))
         if x[2] <= 0.0:
             raise ValueError(f"x: object radius must be positive, got {x[2]}")
-        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x))
+        if object_height is not None and not (math.isfinite(object_height) and object_height > 0.0):
+            raise ValueError(f"object_height: expected a positive height in m, got {object_height}")
+        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height)
         optimize = self._cem if self.params.optimizer == "cem" else self._nelder_mead
         best, evaluations = optimize(evaluate, self._warm_start())
         total, terms = evaluate(best[None])

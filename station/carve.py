@@ -45,6 +45,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
     if not wanted or estimate is None:
         raise LogError(f"{log_path}: no keyframes or no object estimate: nothing to carve")
     views: List[View] = []
+    images: List[np.ndarray] = []
     seq: Optional[int] = None
     with tqdm(total=len(wanted), desc="silhouettes", unit="view", disable=not progress) as bar:
         for message in read_log(log_path, topics={FRAME_META, FRAME_IMAGE}):
@@ -58,6 +59,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose
                 if silhouette is not None:
                     views.append((silhouette.mask, camera, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
+                    images.append(image)
                 bar.update()
     x, P = np.asarray(estimate["x"]), np.asarray(estimate["P"])
-    return carve_views(views, x, P, params, pitch=resolution)
+    return carve_views(views, x, P, params, pitch=resolution, images=images)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -34,14 +34,15 @@ View = Tuple[np.ndarray, CameraModel, np.ndarray]
 
 
 def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], params: CarvingParams,
-                pitch: Optional[float] = None) -> VoxelCarver:
+                pitch: Optional[float] = None, images: Sequence[Optional[np.ndarray]] = ()) -> VoxelCarver:
     """The final model: all views carved in the volume around the estimate (x, P).
 
     Raises ValueError when the estimate is still too uncertain for the volume to fit
-    ``max_voxels`` (a box metres wide would take minutes and carve nothing useful).
+    ``max_voxels`` (a box metres wide would take minutes and carve nothing useful). ``images`` (BGR,
+    one per view or None) colour the model's mesh.
     """
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
-    return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi))
+    return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
 
 
 class CarvingWorker:
@@ -51,15 +52,17 @@ class CarvingWorker:
         self.max_position_std = max_position_std
         self.camera = camera
         self.views: List[View] = []
+        self.images: List[Optional[np.ndarray]] = []  # the keyframes' BGR images, for the mesh's colours
         self.live: Optional[VoxelCarver] = None
         self.error: Optional[str] = None
         self._on_progress = on_progress
-        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]]" = queue.Queue()
+        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray]]]]" = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="carving", daemon=True)
         self._thread.start()
 
-    def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray) -> None:
-        self._queue.put((mask, T_WC, x.copy(), P.copy()))
+    def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray,
+               image: Optional[np.ndarray] = None) -> None:
+        self._queue.put((mask, T_WC, x.copy(), P.copy(), image))
 
     def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
         """Stop the worker and carve the final model (None without keyframes or an estimate, or when the
@@ -73,7 +76,7 @@ class CarvingWorker:
             self.error = f"no final model: centre std {std:.3f} m > {self.max_position_std:g} m"
             return None
         try:
-            return carve_views(self.views, x, P, self.params)
+            return carve_views(self.views, x, P, self.params, images=self.images if any(i is not None for i in self.images) else ())
         except ValueError as exc:  # e.g. the estimate is still too uncertain for a bounded volume
             self.error = f"final carving failed: {exc}"
             return None
@@ -83,9 +86,10 @@ class CarvingWorker:
             item = self._queue.get()
             if item is None:
                 return
-            mask, T_WC, x, P = item
+            mask, T_WC, x, P, image = item
             view = (mask, self.camera, T_WC)
             self.views.append(view)
+            self.images.append(image)
             if self.error is not None:
                 continue
             try:

@@ -86,6 +86,7 @@ class KeyframeView:
     T_WC: np.ndarray
     x: np.ndarray
     P: np.ndarray
+    image: Optional[np.ndarray] = None  # the frame (BGR), for the model's vertex colours
 
 
 @dataclass
@@ -234,7 +235,7 @@ class Pilot:
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
             if self.anchored:  # top/bottom-cut views still carve (the border is not an object edge)
                 with guarded("keyframe"):
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted)
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image)
         if self.anchored:
             with guarded("coverage"):
                 self.coverage.add(np.asarray(cam))
@@ -285,7 +286,7 @@ class Pilot:
         return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
 
     def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
-                        predicted: Optional[Tuple[float, float]]) -> None:
+                        predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None) -> None:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
@@ -293,7 +294,7 @@ class Pilot:
         if gap < self.config.station.keyframe_min_angle:
             return
         self._keyframe_azimuths.append(azimuth)
-        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy())
+        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted))
 
     # per tick ---------------------------------------------------------------------------------

@@ -179,6 +179,57 @@ def test_mesh_is_watertight_and_exports(scenes, tmp_path):
         save_mesh(mesh, tmp_path / "hull.xyz")
 
 
+def test_smoothed_mesh_has_no_voxel_stairs_and_keeps_the_voxels():
+    # A voxelised ball of radius 15 voxels: binary marching cubes leaves stairs (face normals off the
+    # radial direction by about 20 deg on average); the smoothed field must bring that under 8 deg
+    # (a 1-voxel sigma smooths 3-voxel stair periods), with the same closed surface and about the same volume.
+    g = np.mgrid[-20:21, -20:21, -20:21]
+    occupancy = (g**2).sum(axis=0) <= 15**2
+
+    def normal_error(mesh):
+        centres = mesh.triangles_center
+        radial = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+        return np.degrees(np.arccos(np.clip((mesh.face_normals * radial).sum(axis=1), -1.0, 1.0))).mean()
+
+    stairs, smooth = (occupancy_to_mesh(occupancy, np.full(3, -20.0), 1.0, sigma) for sigma in (0.0, 1.0))
+    assert smooth.is_watertight and normal_error(smooth) < 8.0 < normal_error(stairs)
+    assert len(smooth.faces) == len(stairs.faces)  # same sign pattern, same triangles
+    assert smooth.volume == pytest.approx(stairs.volume, rel=0.03)  # the vertices only slide along their edges
+
+
+def test_glb_is_y_up_and_ply_z_up(tmp_path):
+    occupancy = np.zeros((4, 6, 10), dtype=bool)
+    occupancy[1:3, 1:5, 0:8] = True  # a post standing on the floor, tallest along z
+    mesh = occupancy_to_mesh(occupancy, np.array([0.0, 0.0, 0.005]), 0.01)
+    ply = trimesh.load(save_mesh(mesh, tmp_path / "m.ply"), force="mesh")
+    glb = trimesh.load(save_mesh(mesh, tmp_path / "m.glb"), force="mesh")
+    assert np.argmax(ply.extents) == 2 and np.argmax(glb.extents) == 1  # up is z in PLY, y in glTF
+    assert glb.bounds[0, 1] == pytest.approx(ply.bounds[0, 2], abs=1e-6)  # the base stays at the floor
+    assert glb.bounds[1, 1] > 0.0
+
+
+def test_vertex_colours_come_from_the_best_facing_keyframe():
+    # Four views around a cylinder, each image one uniform colour: a vertex on the side facing view i
+    # (normal within 30 deg of the direction to its camera, so no other view faces it better) has colour i.
+    shape = SHAPES["cylinder"]
+    poses = ring_poses(CENTRE, 1.2, 4, (0.3,))
+    colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 0]], dtype=np.uint8)  # BGR
+    views = [(render_mask(shape, CAMERA, T, (LO, HI)), CAMERA, T) for T in poses]
+    images = [np.full((CAMERA.height, CAMERA.width, 3), c, dtype=np.uint8) for c in colours]
+    mesh = carve(views, LO, HI, 0.008, images=images).to_mesh()
+    rgb = mesh.visual.vertex_colors[:, :3]
+    checked = 0
+    for T, colour in zip(poses, colours):
+        to_camera = T[:3, 3] - mesh.vertices
+        cosine = np.einsum("ij,ij->i", mesh.vertex_normals, to_camera) / np.linalg.norm(to_camera, axis=1)
+        facing = cosine > math.cos(math.radians(30.0))
+        assert facing.any() and np.all(rgb[facing] == colour[::-1])
+        checked += np.count_nonzero(facing)
+    assert checked > 0.1 * len(mesh.vertices)
+    with pytest.raises(ValueError, match="image"):
+        VoxelCarver(LO, HI, 0.02).add_view(views[0][0], CAMERA, poses[0], np.zeros((10, 10, 3), np.uint8))
+
+
 def test_meshes_of_random_grids_are_watertight_where_lewiner_is_not():
     rng = np.random.default_rng(1)
     lewiner_open = 0
@@ -306,13 +357,16 @@ def test_temple_hull_lies_in_the_published_box_and_covers_every_silhouette():
     carver = carve(views, lo, box_hi + 0.02, 0.001)
     m = carver.metrics()
     assert np.all(np.array(m.bounds_min) >= box_lo - 0.006) and np.all(np.array(m.bounds_max) <= box_hi + 0.0025)
-    mesh = carver.to_mesh()
-    assert mesh.is_watertight
-    for mask, camera, T_WC in views:
-        uv, _ = camera.project_world(mesh.vertices, T_WC)
-        drawn = np.zeros_like(mask)
-        cv2.fillPoly(drawn, list(np.round(uv[mesh.faces] * 16).astype(np.int32)), 1, shift=4)
-        assert np.count_nonzero(drawn & mask) >= 0.97 * np.count_nonzero(mask)
+    # The hull's surface (binary field) covers each silhouette; the smoothed display mesh moves vertices
+    # at most half a voxel (0.5 mm) inward along their edges, which costs at most a point on the
+    # temple's columns and edges.
+    for mesh, covered in ((occupancy_to_mesh(carver.occupancy, carver.origin, carver.pitch, 0.0), 0.97), (carver.to_mesh(), 0.95)):
+        assert mesh.is_watertight
+        for mask, camera, T_WC in views:
+            uv, _ = camera.project_world(mesh.vertices, T_WC)
+            drawn = np.zeros_like(mask)
+            cv2.fillPoly(drawn, list(np.round(uv[mesh.faces] * 16).astype(np.int32)), 1, shift=4)
+            assert np.count_nonzero(drawn & mask) >= covered * np.count_nonzero(mask)
 
 
 # A NAO's view of small floor objects: QVGA top camera 0.48 m up, 0.5 m away, pitched so high (the

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agent.camera import CameraModel
-from agent.head_servo import head_target
+from agent.head_servo import ObjectHeight, head_target, object_top
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import planar_transform
@@ -67,3 +67,38 @@ def test_measured_centroid_pulls_the_target(params, robot, camera):
 def test_without_an_estimate_the_head_searches(params, robot):
     assert head_target(robot, None, (1.0, 0.0, 0.1), params) == robot.head.clamp(0.0, params.search_pitch)
     assert head_target(robot, (0.0, 0.0, 0.0), None, params) == robot.head.clamp(0.0, params.search_pitch)
+
+
+def test_object_top_inverts_the_projection_of_the_far_rim(robot, camera):
+    # A can of radius r and top H seen from above: its top silhouette row is the far rim's image,
+    # so the row's upper edge (v_t - 1/2) must give H back exactly, from any range and head angle.
+    r, H = 0.05, 0.2
+    for distance, head in ((0.8, (0.0, 0.3)), (1.2, (0.4, 0.2))):
+        pose = (0.0, 0.0, 0.0)
+        T_WC = planar_transform(*pose) @ robot.camera_in_robot(*head)
+        centre = T_WC[:3, 3]
+        obj = (centre[0] + distance, centre[1] + 0.02, r)
+        away = np.array([obj[0] - centre[0], obj[1] - centre[1]]) / math.hypot(obj[0] - centre[0], obj[1] - centre[1])
+        rim = np.array([[obj[0] + r * away[0], obj[1] + r * away[1], H]])
+        uv, in_front = camera.project_world(rim, T_WC)
+        assert in_front[0]
+        assert object_top(uv[0, 1] + 0.5, uv[0, 0], camera, T_WC, obj) == pytest.approx(H, abs=1e-9)
+
+
+def test_object_height_ignores_cut_tops_and_aims_at_the_middle(robot, camera):
+    height = ObjectHeight(window=3)
+    T_WC = robot.camera_in_robot(0.0, 0.3)
+    assert height.aim is None
+    height.update(10, 320.0, True, camera, T_WC, (1.0, 0.0, 0.05))  # top cut by the image border: no bound
+    height.update(10, 320.0, False, camera, T_WC, None)  # no estimate yet: no bound
+    assert height.top is None
+    height.update(200, 320.0, False, camera, T_WC, (1.0, 0.0, 0.05))
+    assert height.aim == pytest.approx(0.5 * object_top(200, 320.0, camera, T_WC, (1.0, 0.0, 0.05)))
+
+
+def test_pitch_follows_the_aim_height_not_a_cut_centroid(params, robot, camera):
+    pose, obj = (0.0, 0.0, 0.0), (1.0, 0.0, 0.05)
+    low, high = head_target(robot, pose, obj, params, aim_height=0.02), head_target(robot, pose, obj, params, aim_height=0.15)
+    assert low[1] > high[1]  # aiming lower pitches the head further down (NAO pitch is positive down)
+    seen_high = (camera.K[0, 2], camera.K[1, 2] - 60.0)  # a centroid high in the image (base cut off)
+    assert head_target(robot, pose, obj, params, seen_high, camera, low, aim_height=0.02)[1] == pytest.approx(low[1])

@@ -12,6 +12,8 @@ from agent.coverage import Coverage
 from agent.ekf import load_ekf_params, measure
 from agent.motion import camera_poses, head_yaw_toward, object_in_view, rollout_poses
 from agent.planner import (
+    VerticalView,
+    vertical_view_cost,
     CLEARANCE_WEIGHT,
     Planner,
     clearance_cost,
@@ -141,7 +143,7 @@ def test_plan_terms_add_up_and_the_command_is_within_limits():
     x, P = np.array([2.0, 0.0, 0.1]), np.diag([0.02, 0.5, 0.05]) ** 2
     plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
     assert plan.cost == pytest.approx(sum(plan.terms.values()))
-    assert set(plan.terms) == {"uncertainty", "view", "coverage", "distance", "effort", "clearance"}
+    assert set(plan.terms) == {"uncertainty", "view", "coverage", "distance", "vertical", "effort", "clearance"}
     assert plan.omegas.shape == (PARAMS.horizon,) and np.all(np.abs(plan.omegas) <= ROBOT.walk.omega_max)
     v, vy, omega = plan.command
     assert (v, vy) == (PARAMS.speed, 0.0) and omega == plan.omegas[0]
@@ -276,3 +278,32 @@ def test_passive_circle_law_converges_to_the_circle():
         omega = circle_omega(pose, np.zeros(2), 0.8, 0.08, 1.0, ROBOT.walk.omega_max)
         pose = rollout_poses(pose, np.array([omega]), 0.08, 1.0)[0]
     assert math.hypot(pose[0], pose[1]) == pytest.approx(0.8, abs=0.03)
+
+
+def test_vertical_view_cost_vanishes_where_the_base_and_top_fit_the_reachable_view():
+    view = VerticalView.for_robot(ROBOT_MODEL, "qvga")
+    r, height, margin = 0.055, 0.2, PARAMS.vertical_margin
+    for yaw in (0.0, 1.5):  # body facing the object / head turned to the side (lower pitch limit)
+        p_hi = ROBOT_MODEL.head.pitch_range(yaw)[1]
+        # the base's near edge enters the reachable view at d0 = r + h_c / tan(p_hi + h_v - m)
+        d0 = r + view.camera_height / math.tan(p_hi + view.half_vfov - margin)
+        near, far = (vertical_view_cost(np.array([d]), np.array([yaw]), r, height, view, margin) for d in (0.9 * d0, 1.05 * d0))
+        assert near > 0.0 and far == 0.0
+        expected = math.atan2(view.camera_height, 0.9 * d0 - r) + margin - p_hi - view.half_vfov
+        assert near == pytest.approx(expected**2)
+    # turning the head to the side lowers the pitch limit, so the orbit must be wider
+    assert ROBOT_MODEL.head.pitch_range(1.5)[1] < ROBOT_MODEL.head.pitch_range(0.0)[1]
+    # an object taller than the view at that range costs by how much it overflows the vertical FOV
+    tall = vertical_view_cost(np.array([0.6]), np.array([0.0]), r, 2.0, view, margin)
+    assert tall > 0.0
+
+
+def test_planner_without_robot_geometry_has_no_vertical_term():
+    x, P = np.array([1.0, 0.0, 0.1]), np.diag([0.01, 0.01, 0.01]) ** 2
+    plan = make_planner().plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
+    assert plan.terms["vertical"] == 0.0
+    robot = Planner.for_robot(PARAMS, ROBOT_MODEL, "qvga", EKF)
+    near = robot.plan(np.array([0.45, 0.0, math.pi / 2]), x, P, Coverage(PARAMS.coverage, HFOV), object_height=0.2)
+    assert near.terms["vertical"] > 0.0  # 0.45 m from a 0.1 m can with the head turned: the base is cut
+    with pytest.raises(ValueError, match="object_height"):
+        robot.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV), object_height=-1.0)
