@@ -50,8 +50,9 @@ reproject within ``ransac_reprojection_px``; otherwise each marker alone is a hy
 within ``hypothesis_gate_px`` of its prediction are its consensus, and the largest consensus is
 refined jointly and re-gated. A single marker has two planar solutions that nearly explain its
 corners (turned either way about the line of sight, IPPE's two solutions): both seed the
-refinement; the one that explains the corners within ``max_reprojection_px`` alone wins, or the
-one the prior's Mahalanobis distance prefers; when neither is decided, there is no fix.
+refinement; the best wins when the other's squared residuals are larger by at least
+``single_marker_evidence`` pixel variances (or fail ``max_reprojection_px``), else the one the
+prior's Mahalanobis distance prefers; when neither decides, there is no fix.
 
 Cold start with repeated colours: of the ``max_search_blobs`` largest blobs (round-robin over the
 colours; clutter of a landmark colour must not make the search explode), every pair of blobs and
@@ -120,6 +121,7 @@ class LocalizationParams:
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
+    single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
@@ -732,7 +734,12 @@ class RobotLocalizer:
             raise NoFix("one marker: no planar solution")
         solutions.sort(key=lambda s: s[1])
         passing = [s for s in solutions if s[1] <= self.params.max_reprojection_px]
-        distinct = [s for s in passing[1:] if math.hypot(*(s[0][:2] - passing[0][0][:2])) > self.params.ambiguity_distance]
+        # A rival is a different pose whose squared residuals exceed the best one's by less than
+        # ``single_marker_evidence`` pixel variances (a likelihood ratio the corners cannot settle).
+        n = 2 * len(marker)
+        variance = max(self.params.pixel_sigma**2, n * passing[0][1] ** 2 / max(1, n - 3)) if passing else 1.0
+        distinct = [s for s in passing[1:] if math.hypot(*(s[0][:2] - passing[0][0][:2])) > self.params.ambiguity_distance
+                    and n * (s[1] ** 2 - passing[0][1] ** 2) < self.params.single_marker_evidence * variance]
         if passing and distinct:
             if prior is None:
                 raise _Ambiguous("one marker: two planar solutions explain it and there is no prior to choose",
