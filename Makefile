@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: venv test test-slow demo demo-estimation bench fuzz clean
+.PHONY: venv test test-slow demo demo-estimation bench matrix fuzz clean
 
 venv: $(STAMP)
 
@@ -33,6 +33,12 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[station,test,bench]"
 	@$(PY) -c "import open3d" 2>/dev/null || { command -v apt-get >/dev/null && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || true
 	$(PY) -m tools.bench --out docs/benchmarks.md
+
+# The randomized mission matrix (a benchmark: 40 missions through the NAOqi stand-in, about an hour
+# on two cores); its table goes to the matrix section of docs/benchmarks.md. COUNT=3 for a quick look.
+COUNT ?= 40
+matrix: $(STAMP)
+	$(PY) -m tools.matrix --count $(COUNT) --out runs/matrix --doc docs/benchmarks.md
 
 # Long fuzzing budget (the default suite runs a bounded one).
 fuzz: $(STAMP)

@@ -16,6 +16,10 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   solid at the near plane z_C = NEAR (the hull of the vertices in front plus the near-plane
   crossings of every segment joining a vertex in front to one behind); flat shading: a vertical
   cylinder's side and top cap, each box face facing the camera, coloured by Lambert's law;
+* triangle meshes (parts of shape ``mesh``, need not be convex): every triangle facing the camera,
+  Lambert-shaded, farthest first (by its centroid's distance), filled on one shared supersampled
+  buffer, so the silhouette is the exact union of the projected triangles; triangles reaching
+  behind the near plane are dropped (the object is never that close to the camera);
 * ArUco markers: a white board standing on the floor (the quiet zone) and the marker image of
   ``cv2.aruco.generateImageMarker`` mapped onto the projected corners by ``cv2.warpPerspective``;
 * colour landmarks: a disc of the landmark's diameter facing the camera (a ball's outline), on a post.
@@ -148,6 +152,56 @@ class _Solid:
         for face, normal, color in self.faces:
             if np.dot(normal, view.centre - face[0]) > 1e-9:
                 _fill_hull(image, view, face, color)
+
+
+class _MeshSolid:
+    """A triangle mesh part (nao_sim/meshes.py), flat-shaded per triangle."""
+
+    def __init__(self, vertices_W: np.ndarray, faces: np.ndarray, color: Tuple[int, int, int]):
+        self.vertices_W = vertices_W
+        self.faces = faces
+        self.centre = 0.5 * (vertices_W.min(axis=0) + vertices_W.max(axis=0))
+        self.radius = float(np.linalg.norm(vertices_W - self.centre, axis=1).max())
+        tri = vertices_W[faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(normals, axis=1)
+        keep = length > 0.0  # degenerate triangles cover no pixel
+        self.faces, tri, self.normals = faces[keep], tri[keep], normals[keep] / length[keep, None]
+        self.centroids = tri.mean(axis=1)
+        k = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, self.normals @ LIGHT)
+        self.colors = np.minimum(255, np.rint(np.outer(k, color))).astype(np.uint8)
+
+    def draw(self, image: np.ndarray, view: _View) -> None:
+        facing = np.einsum("fi,fi->f", self.normals, view.centre - self.centroids) > 0.0
+        points_C = view.to_camera(self.vertices_W)
+        in_front = points_C[:, 2] >= NEAR
+        facing &= in_front[self.faces].all(axis=1)
+        if not facing.any():
+            return
+        uv = np.full((len(points_C), 2), np.nan)
+        uv[in_front] = view.project(points_C[in_front])
+        faces = self.faces[facing]
+        order = np.argsort(np.linalg.norm(self.centroids[facing] - view.centre, axis=1))[::-1]
+        used = uv[np.unique(faces)]
+        h, w = image.shape[:2]
+        x0, y0 = (max(int(np.floor(v)), 0) for v in used.min(axis=0))
+        x1, y1 = min(int(np.ceil(used[:, 0].max())) + 1, w), min(int(np.ceil(used[:, 1].max())) + 1, h)
+        if x1 <= x0 or y1 <= y0:
+            return
+        size = ((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE)
+        paint, cover = np.zeros(size + (3,), np.uint8), np.zeros(size, np.uint8)
+        sub = _fixed((uv - np.float64([x0, y0]) + 0.5) * SUPERSAMPLE - 0.5)
+        colors = self.colors[facing]
+        for i in order:
+            polygon = sub[faces[i]]
+            cv2.fillConvexPoly(paint, polygon, tuple(int(c) for c in colors[i]), lineType=cv2.LINE_8, shift=SHIFT)
+            cv2.fillConvexPoly(cover, polygon, 255, lineType=cv2.LINE_8, shift=SHIFT)
+        area = (x1 - x0, y1 - y0)
+        alpha = cv2.resize(cover, area, interpolation=cv2.INTER_AREA).astype(np.float32)[..., None] / 255.0
+        # the mean colour over covered sub-pixels: paint is black where uncovered
+        colour = cv2.resize(paint, area, interpolation=cv2.INTER_AREA).astype(np.float32) / np.maximum(alpha, 1e-6)
+        roi = image[y0:y1, x0:x1]
+        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + colour * alpha), 0, 255)
 
 
 def _post(x: float, y: float, top: float) -> np.ndarray:
@@ -294,7 +348,11 @@ class Renderer:
         normalized = cv2.undistortPoints(pix, intrinsics.K, np.asarray(intrinsics.dist, dtype=float)).reshape(-1, 2)
         self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
-        self._items: List = [_Solid(p, p.world_points(scenario.position, scenario.yaw), scenario.color) for p in scenario.parts]
+        self._items: List = [
+            _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color) if p.shape == "mesh"
+            else _Solid(p, p.world_points(scenario.position, scenario.yaw), scenario.color)
+            for p in scenario.parts
+        ]
         for lm in landmarks.landmarks:
             if lm.kind == "aruco":
                 self._items.append(_MarkerBoard.build(lm))

@@ -6,7 +6,13 @@ at the object's centre, z up), placed in the world at ``position`` with heading 
 
 * ``cylinder``: vertical, centred at ``centre`` (x, y, z of its middle), ``size`` = (diameter,
   diameter, height);
-* ``box``: centred at ``centre``, ``size`` = extents along its own x, y, z, turned by ``yaw`` about z.
+* ``box``: centred at ``centre``, ``size`` = extents along its own x, y, z, turned by ``yaw`` about z;
+* ``mesh``: a triangle mesh (``mesh``: ``procedural:NAME`` or a mesh file, relative to config/ or
+  absolute; see nao_sim/meshes.py) scaled per axis so that its bounding box is ``size`` centred at
+  ``centre``, turned by ``yaw``. Unlike the others it need not be convex.
+
+``Scenario.contains(points)`` is the exact inside test of the object the renderer draws (analytic
+for cylinders and boxes, the winding number for meshes): the truth of silhouettes and models.
 
 The robot starts at a seeded distance in ``start_distance`` from the object, at a seeded azimuth
 (seen from the object) in ``start_azimuth``, facing the object up to a Gaussian heading error of
@@ -19,50 +25,84 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Dict, Literal, Sequence, Tuple, Union
+from typing import Dict, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import rot2
+from nao_sim.meshes import PROCEDURAL_PREFIX, Mesh, contains, fit_box, load_mesh
 
 
 @dataclass(frozen=True)
 class Part:
     """One convex red part of an object, in the object frame O."""
 
-    shape: Literal["cylinder", "box"]
+    shape: Literal["cylinder", "box", "mesh"]
     centre: Tuple[float, float, float] = field(metadata=bounds(-2.0, 2.0))
     size: Tuple[float, float, float] = field(metadata=bounds(0.001, 2.0))
     yaw: float = field(default=0.0, metadata=bounds(-math.pi, math.pi))
+    mesh: Optional[str] = None  # shape 'mesh': procedural:NAME or a mesh file (relative to config/)
 
     def __post_init__(self) -> None:
+        if (self.shape == "mesh") != (self.mesh is not None):
+            raise ValueError(f"part {self.shape}: 'mesh' is given exactly for shape 'mesh', got mesh={self.mesh!r}")
         if self.shape == "cylinder" and self.size[0] != self.size[1]:
             raise ValueError(f"a cylinder part has size (diameter, diameter, height), got {self.size}")
         if self.centre[2] - 0.5 * self.size[2] < -1e-9:
             raise ValueError(f"part {self.shape} at {self.centre} reaches below the floor")
 
+    @cached_property
+    def triangles(self) -> Mesh:
+        """Shape 'mesh': (vertices, faces) in the object frame, loaded once."""
+        if self.mesh is None:
+            raise ValueError(f"a {self.shape} part has no triangle mesh")
+        source = self.mesh if self.mesh.startswith(PROCEDURAL_PREFIX) else CONFIG_DIR / self.mesh
+        vertices, faces = fit_box(load_mesh(source), (0.0, 0.0, 0.0), self.size)
+        vertices[:, :2] = vertices[:, :2] @ rot2(self.yaw).T
+        return vertices + np.asarray(self.centre), faces
+
     def world_points(self, position: Tuple[float, float], yaw: float, samples: int = 72) -> np.ndarray:
-        """Vertices (N x 3, world) whose convex hull is this part: box corners or the two end circles."""
+        """Vertices (N x 3, world): box corners, the two end circles of a cylinder, a mesh's vertices.
+
+        The convex hull of the points is the part, except for a mesh (the hull of a concave one holds more).
+        """
         sx, sy, sz = (0.5 * s for s in self.size)
-        if self.shape == "box":
+        if self.shape == "mesh":
+            local = self.triangles[0].copy()
+        elif self.shape == "box":
             local = np.array([[x, y, z] for z in (-sz, sz) for x, y in ((-sx, -sy), (sx, -sy), (sx, sy), (-sx, sy))])
             local[:, :2] = local[:, :2] @ rot2(self.yaw).T
         else:
             a = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
             ring = np.stack([sx * np.cos(a), sx * np.sin(a)], axis=1)
             local = np.vstack([np.column_stack([ring, np.full(samples, z)]) for z in (-sz, sz)])
-        local = local + np.asarray(self.centre)
+        if self.shape != "mesh":
+            local = local + np.asarray(self.centre)
         local[:, :2] = local[:, :2] @ rot2(yaw).T + np.asarray(position)
         return local
 
+    def world_mesh(self, position: Tuple[float, float], yaw: float) -> Mesh:
+        """Shape 'mesh': vertices in the world and faces."""
+        return self.world_points(position, yaw), self.triangles[1]
+
+    def contains(self, points_O: np.ndarray) -> np.ndarray:
+        """Bool per point (N x 3, object frame O): inside this part."""
+        if self.shape == "mesh":
+            return contains(self.triangles, points_O)
+        p = points_O - np.asarray(self.centre)
+        inside_z = np.abs(p[:, 2]) <= 0.5 * self.size[2]
+        if self.shape == "cylinder":
+            return inside_z & (np.hypot(p[:, 0], p[:, 1]) <= 0.5 * self.size[0])
+        local = p[:, :2] @ rot2(self.yaw)  # rows times R: the inverse rotation
+        return inside_z & np.all(np.abs(local) <= 0.5 * np.asarray(self.size[:2]), axis=1)
 
 
 @dataclass(frozen=True)
 class Scenario:
     """An object to find and where the robot starts."""
 
-    kind: Literal["cylinder", "box", "composite"]
+    kind: Literal["cylinder", "box", "composite", "mesh"]
     position: Tuple[float, float] = field(metadata=bounds(-2.5, 2.5))  # object centre on the floor, world, m
     yaw: float = field(metadata=bounds(-math.pi, math.pi))
     color: Tuple[int, int, int] = field(metadata=bounds(0, 255))  # BGR of a lit face

@@ -38,7 +38,7 @@ from tests.carving_scenes import (
 
 PITCH = 0.002
 CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))
-TEMPLE = Path("/work/shared/data/middlebury/templeSparseRing")
+from tests.conftest import MIDDLEBURY_TEMPLE as TEMPLE  # ../shared from the repository root
 
 # Objects about 0.4 m across (a chair-sized target for a NAO), 12 VGA cameras at 1.2 m on three rings.
 # The conservative carve keeps every voxel its cube's footprint touches, a shell about 0.75 voxel
@@ -345,7 +345,7 @@ def temple_views():
     return views
 
 
-@pytest.mark.skipif(not TEMPLE.exists(), reason="Middlebury templeSparseRing not available")
+@pytest.mark.usefixtures("middlebury_temple")  # a missing data set fails with its path
 def test_temple_hull_lies_in_the_published_box_and_covers_every_silhouette():
     box_lo, box_hi = np.array([-0.073568, 0.021728, -0.012445]), np.array([0.028855, 0.181892, 0.062736])
     views = temple_views()

@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tempfile
 import warnings
 from pathlib import Path
@@ -145,7 +146,7 @@ def fuzz_message_fields(case: Tuple[str, Dict[str, Any], bool]) -> None:
     type_name, data, as_literal = case
     payload = dumps(data)
     if as_literal:  # a number written as a non-finite literal
-        payload = payload.replace(b"0.", b"NaN", 1) if b"0." in payload else payload
+        payload = re.sub(rb"(?<![\w.\"])-?\d+\.\d+(?:[eE][-+]?\d+)?(?![\w.])", b"NaN", payload, count=1)  # a whole number token
     try:
         message = decode(payload, MESSAGE_TYPES[type_name])
     except ProtocolError:

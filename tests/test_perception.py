@@ -25,7 +25,7 @@ from nao_core.geometry import planar_transform, wrap_angle
 from nao_sim.world import SimWorld
 from tools.benchmarks.bench_perception_width import renderer_fattening_px
 
-TEMPLE = Path("/work/shared/data/middlebury/templeSparseRing")
+from tests.conftest import MIDDLEBURY_TEMPLE as TEMPLE  # ../shared from the repository root
 RED_BGR = (35, 35, 200)
 GREY_BGR = (128, 128, 128)
 SUPERSAMPLE = 8
@@ -286,7 +286,7 @@ def temple_views():
             yield name, values[:9].reshape(3, 3), values[9:18].reshape(3, 3), values[18:21]
 
 
-@pytest.mark.skipif(not TEMPLE.exists(), reason="Middlebury templeSparseRing not available")
+@pytest.mark.usefixtures("middlebury_temple")  # a missing data set fails with its path
 def test_temple_silhouettes_lie_inside_the_projected_bounding_box(params):
     """16 real views, near-black background: a 'bright' class (any hue, some saturation and light)."""
     bright = dataclasses.replace(

@@ -1,10 +1,12 @@
 """Whole missions with real processes, real Zenoh and real MCAP on loopback, at QVGA.
 
 * The mock-robot mission: `nao-bridge --sim` and `station start` as two processes; the mission
-  completes, the centre is within 2 cm of the simulator's truth, coverage >= 90 %, the log reads
-  without warnings, `station replay` reproduces every decision, `station carve` gives a watertight
-  mesh that contains the object.
-* The same mission through the NAOqi stand-in (`nao_sim.standin` over libqi, `station start --naoqi`).
+  completes, centre within 1 cm and radius within a quarter of the radius of the simulator's truth,
+  model IoU >= 0.5, coverage >= 90 %, never nearer than 0.35 m to the can, standing still soon after
+  the final decision; the log reads without warnings, `station replay` reproduces every decision,
+  `station carve` gives a watertight mesh that contains the can and is carved around it.
+* The same mission through the NAOqi stand-in (`nao_sim.standin` over libqi, `station start --naoqi`,
+  via tools.matrix.run_mission) with the same assertions; randomized worlds: tests/test_matrix.py.
 * Every failure outcome: the bridge runs in this process (so the test can make the robot fall,
   hide the object or the landmarks), the station is a separate process; the robot ends stopped,
   the log is readable, result.json says why, the exit code says failure.
@@ -36,16 +38,27 @@ from nao_bridge.bridge import Bridge, BridgeParams
 from nao_bridge.sim_backend import SimBackend
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import LandmarkMap
-from nao_core.protocol import State, WalkCommand, decode
+from nao_core.protocol import State, Truth, WalkCommand, decode
 from nao_core.robot_model import load_robot_model
+from nao_sim.randomize import fixed_world
 from nao_sim.render import Renderer
+from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 from station.launch import free_port
 from station.mcap_log import read_log
-from station.topics import CMD_WALK, DECISION, STATE
+from station.topics import CMD_WALK, DECISION, STATE, TRUTH
 
 PY = sys.executable
 MISSION_TIMEOUT = 240.0
+SIM = load_sim_config()
+BRIDGE = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
+CAN_RADIUS = SIM.scenario("can").radius
+CYLINDER_CENTRE_ERROR = 0.01  # m, issue 12's target for cylinders (a fifth of the can's radius)
+MIN_CLEARANCE = 0.35  # m, issue 12: never nearer the object's surface (the planner keeps 0.45 m)
+# final decision -> the robot reports standing: the stop command (at once, or the bridge's deadman),
+# then the velocity lag decays below the walking threshold (1e-3 of full speed) in tau ln(1000);
+# 1 s margin for a loaded machine and the 20 Hz state rate
+STOP_WITHIN = BRIDGE.deadman_s + SIM.dynamics.velocity_time_constant * math.log(1e3) + 1.0
 
 
 def station(*args: str, stderr: Optional[Path] = None) -> subprocess.Popen:
@@ -105,10 +118,27 @@ def test_sim_mission_completes_precisely(sim_mission):
     result = json.loads((run / "result.json").read_text())
     assert code == 0, err[-2000:]
     assert result["status"] == "success" and result["outcome"] == "completed"
-    assert result["ground_truth"]["centre_error"] < 0.02
+    truth = result["ground_truth"]
+    assert truth["centre_error"] <= CYLINDER_CENTRE_ERROR
+    assert abs(truth["radius_error"]) <= 0.25 * truth["r"]  # the estimated cylinder is the can's size
+    assert result["model"]["accuracy"]["iou"] >= 0.5  # more of the model is can than not
     assert result["coverage"] >= 0.90
     for name in ("run.mcap", "model.ply", "model.glb", "voxels.npz", "trajectory.png", "cameras.png", "errors.png", "progress.png"):
         assert (run / name).stat().st_size > 0, name
+
+
+def test_sim_mission_kept_its_distance_and_stopped_soon_after_deciding(sim_mission):
+    run, _, _ = sim_mission
+    messages = read_clean(run / "run.mcap")
+    truths = [decode(m.data, Truth) for m in messages if m.topic == TRUTH]
+    assert len(truths) > 100
+    clearance = min(math.dist(t.robot_pose[:2], t.object.centre) - t.object.radius for t in truths)
+    assert clearance >= MIN_CLEARANCE
+    decisions = [(m.t, m.json()) for m in messages if m.topic == DECISION]
+    final = next(t for i, (t, d) in enumerate(decisions) if all(e["stop"] for _, e in decisions[i:]))
+    at_rest = [m.t for m in messages if m.topic == STATE and m.t >= final and not decode(m.data, State).walking]
+    assert at_rest, "the robot never reported standing still after the final decision"
+    assert at_rest[0] - final <= STOP_WITHIN
 
 
 def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission):
@@ -193,28 +223,27 @@ def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission
     inner = [(truth["x"] + 0.5 * truth["r"] * math.cos(a), truth["y"] + 0.5 * truth["r"] * math.sin(a), z)
              for a in angles for z in heights] + [(truth["x"], truth["y"], z) for z in heights]
     assert (winding_numbers(mesh, np.array(inner)) > 0.5).all()
+    # and carved: at mid-height, twice the radius from the axis is outside the can's visual hull from
+    # any horizontal view around it (an uncarved volume would keep these)
+    outer = [(truth["x"] + 2.0 * truth["r"] * math.cos(a), truth["y"] + 2.0 * truth["r"] * math.sin(a), 0.5 * truth["height"])
+             for a in angles]
+    assert (winding_numbers(mesh, np.array(outer)) < 0.5).all()
     assert json.loads(carve.stdout)["metrics"]["volume"] == pytest.approx(result["model"]["metrics"]["volume"], rel=1e-9)
 
 
 def test_standin_mission_through_qi_completes(tmp_path):
-    port = free_port()
-    standin = subprocess.Popen([PY, "-m", "nao_sim.standin", "--scenario", "can", "--resolution", "qvga", "--seed", "2",
-                                "--listen", f"tcp://127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        time.sleep(2.0)  # libqi listening
-        proc = station("start", "--naoqi", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "run"), stderr=tmp_path / "err")
-        proc.wait(MISSION_TIMEOUT)
-    finally:
-        standin.send_signal(signal.SIGINT)
-        try:
-            standin.wait(10)
-        except subprocess.TimeoutExpired:
-            standin.kill()
-    result = json.loads((tmp_path / "run" / "result.json").read_text())
-    assert proc.returncode == 0, (tmp_path / "err").read_text()[-2000:]
-    assert result["outcome"] == "completed" and result["coverage"] >= 0.90
+    """The configured world (can, the low ring, exact camera) served by the stand-in in this process
+    (tools.matrix.run_mission), the station running its NAOqi bridge against it: the same guarantees
+    as tests/test_matrix.py's randomized worlds."""
+    from tools.matrix import run_mission
+
+    r = run_mission(2, tmp_path, "qvga", spec=fixed_world("can", 2))
+    assert r.returncode == 0 and r.outcome == "completed", r.reason
+    radius = CAN_RADIUS
+    assert r.centre_error <= CYLINDER_CENTRE_ERROR and abs(r.radius_error) <= 0.25 * radius
+    assert r.iou >= 0.5 and r.min_clearance >= MIN_CLEARANCE and r.stopped
+    assert r.stop_delay is not None and r.stop_delay <= BRIDGE.deadman_s + 1.0  # see tests/test_matrix.py
     assert "naoqi" in (tmp_path / "run" / "run.mcap").read_bytes()[:100000].decode("latin-1")  # the info says so
-    assert last_walk(read_clean(tmp_path / "run" / "run.mcap")).vx == 0.0
 
 
 # --- failure outcomes ---------------------------------------------------------------------------
@@ -297,7 +326,8 @@ def test_failure_mid_mission_stops_robot_and_says_why(sim_bridge, tmp_path, even
         result = finish(tmp_path, proc, outcome)
     finally:
         proc.kill()
-    assert not bridge.world.is_walking()
+    if event != "fall":  # a fallen world ignores walks: its stop is the zero walk command finish() checks
+        assert not bridge.world.is_walking()
     if event.startswith("SIG"):
         assert result["reason"] == f"interrupted by {event}"
 

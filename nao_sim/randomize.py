@@ -1,0 +1,156 @@
+"""Randomized simulated worlds for the mission matrix (tools/matrix.py) and its CI sample.
+
+``random_world(seed)`` draws, from ``np.random.default_rng(seed)`` alone, one world a user could
+build (``config/sim.yaml`` ``randomizer`` section holds every range):
+
+* a landmark layout from ``layouts`` (walls at several heights, the low ring, repeated colours,
+  mixed, sparse), with the room size the layout was written for;
+* an object from ``objects`` (named scenarios of real sizes and shapes: cans, boxes, a mug, a
+  figure, meshes), moved by up to ``object_offset`` from its place and turned at random;
+* the start: at a distance U(``start_distance``) from the object and an azimuth U(-pi, pi), with
+  the object U(-``start_bearing``, ``start_bearing``) off the heading;
+* walking: per-axis speed-scale sigma and slip drawn in ``speed_scale_sigma`` / ``slip``; the torso
+  sway scaled by U(``sway_scale``);
+* the camera: the simulator's true intrinsics differ from the configured (what the station uses) by
+  ``focal_error`` (relative, random sign per axis) and ``principal_error`` px (random sign per axis);
+* the NAOqi stand-in's frames: latency range, drop rate and clock offset drawn in their ranges.
+
+The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.geometry import Pose
+from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
+from nao_sim.scenarios import Scenario, SimConfig, load_sim_config
+from nao_sim.world import SimWorld
+
+
+@dataclass(frozen=True)
+class Layout:
+    file: str  # landmark map, relative to config/
+    half_size: float = field(metadata=bounds(1.0, 50.0))  # the room it was written for, m
+
+
+@dataclass(frozen=True)
+class Randomizer:
+    layouts: Dict[str, Layout]
+    objects: Tuple[str, ...]  # scenario names of config/sim.yaml
+    object_offset: float = field(metadata=bounds(0.0, 1.0))  # m, uniform in a square about the scenario's place
+    start_distance: Tuple[float, float] = field(metadata=bounds(0.3, 3.0))  # m
+    start_bearing: float = field(metadata=bounds(0.0, math.pi))  # rad, the object off the heading, at most
+    speed_scale_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 0.5))  # range of the per-axis sigma
+    slip: Tuple[float, float] = field(metadata=bounds(0.0, 0.5))  # range of slip_translation and slip_rotation
+    sway_scale: Tuple[float, float] = field(metadata=bounds(0.0, 5.0))  # range of the sway amplitude factor
+    focal_error: float = field(metadata=bounds(0.0, 0.1))  # relative, random sign per axis
+    principal_error: float = field(metadata=bounds(0.0, 10.0))  # px, random sign per axis
+    latency: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # s, range of the latency range's ends
+    drop_rate: Tuple[float, float] = field(metadata=bounds(0.0, 0.9))
+    clock_offset: Tuple[float, float] = field(metadata=bounds(-1e9, 1e9))  # s
+
+    def __post_init__(self) -> None:
+        if not self.layouts or not self.objects:
+            raise ValueError("randomizer: 'layouts' and 'objects' must not be empty")
+
+
+def load_randomizer() -> Randomizer:
+    return load(Randomizer, [CONFIG_DIR / "sim.yaml"], section="randomizer")
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """One drawn world: what the simulator is, what the station is told, and a one-line summary."""
+
+    seed: int
+    layout: str
+    landmark_path: str  # absolute: the station's landmark_map
+    config: SimConfig  # the simulator's (truth)
+    scenario: Scenario
+    object_name: str
+    robot: RobotModel  # the simulator's true camera; the station keeps the configured one
+    start: Pose
+
+    def summary(self) -> Dict[str, object]:
+        dyn, noise = self.config.dynamics, self.config.noise
+        return {"seed": self.seed, "layout": self.layout, "object": self.object_name,
+                "start_distance": round(math.dist(self.start[:2], self.scenario.position), 3),
+                "start_bearing_deg": round(math.degrees(_bearing(self.start, self.scenario.position)), 1),
+                "speed_scale_sigma": round(dyn.speed_scale_sigma[0], 3), "sway_roll": round(dyn.sway.roll, 3),
+                "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency]}
+
+
+def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
+    return math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], 2.0 * math.pi)
+
+
+def _intrinsics(intr: CameraIntrinsics, rng: np.random.Generator, focal: float, principal: float) -> CameraIntrinsics:
+    sx, sy, su, sv = rng.choice([-1.0, 1.0], 4)
+    return dataclasses.replace(intr, fx=float(intr.fx * (1.0 + sx * focal)), fy=float(intr.fy * (1.0 + sy * focal)),
+                               cx=float(intr.cx + su * principal), cy=float(intr.cy + sv * principal))
+
+
+def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optional[SimConfig] = None,
+                 robot: Optional[RobotModel] = None) -> WorldSpec:
+    """Draw world ``seed`` (module docstring); ``robot`` is the configured model (default NAO V6)."""
+    r = randomizer or load_randomizer()
+    base = base or load_sim_config()
+    robot = robot or load_robot_model()
+    rng = np.random.default_rng(seed)
+    layout_name = sorted(r.layouts)[int(rng.integers(len(r.layouts)))]
+    layout = r.layouts[layout_name]
+    object_name = r.objects[int(rng.integers(len(r.objects)))]
+    scenario = base.scenario(object_name)
+    position = tuple(float(p + rng.uniform(-r.object_offset, r.object_offset)) for p in scenario.position)
+    scenario = dataclasses.replace(scenario, position=position, yaw=float(rng.uniform(-math.pi, math.pi)))
+    distance, azimuth = rng.uniform(*r.start_distance), rng.uniform(-math.pi, math.pi)
+    x, y = position[0] + distance * math.cos(azimuth), position[1] + distance * math.sin(azimuth)
+    heading = math.remainder(azimuth + math.pi + rng.uniform(-r.start_bearing, r.start_bearing), 2.0 * math.pi)
+
+    dyn = base.dynamics
+    sway = rng.uniform(*r.sway_scale)
+    dyn = dataclasses.replace(
+        dyn,
+        speed_scale_sigma=tuple(float(s) for s in rng.uniform(*r.speed_scale_sigma, 3)),
+        slip_translation=float(rng.uniform(*r.slip)), slip_rotation=float(rng.uniform(*r.slip)),
+        sway=dataclasses.replace(dyn.sway, lateral=dyn.sway.lateral * sway, roll=dyn.sway.roll * sway,
+                                 bob=dyn.sway.bob * sway),
+    )
+    low, high = np.sort(rng.uniform(*r.latency, 2))
+    noise = dataclasses.replace(base.noise, latency=(float(low), float(high)), drop_rate=float(rng.uniform(*r.drop_rate)),
+                                clock_offset=float(rng.uniform(*r.clock_offset)))
+    config = dataclasses.replace(base, landmarks=layout.file, room=dataclasses.replace(base.room, half_size=layout.half_size),
+                                 dynamics=dyn, noise=noise, scenarios={object_name: scenario})
+    camera = robot.camera
+    resolutions = {k: _intrinsics(v, rng, r.focal_error, r.principal_error) for k, v in camera.resolutions.items()}
+    true_robot = dataclasses.replace(robot, camera=dataclasses.replace(camera, resolutions=resolutions))
+    return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
+                     true_robot, (x, y, heading))
+
+
+class RandomWorld(SimWorld):
+    """The SimWorld of a ``WorldSpec``: its config, true camera, object and start pose."""
+
+    def __init__(self, spec: WorldSpec, resolution: str = "qvga", **kwargs):
+        self._spec_start = spec.start
+        super().__init__(spec.scenario, spec.robot, resolution=resolution, seed=spec.seed, config=spec.config, **kwargs)
+        self.scenario_name = spec.object_name
+
+    def _start_pose(self) -> Pose:
+        return self._spec_start
+
+
+def fixed_world(scenario: str, seed: int, robot: Optional[RobotModel] = None) -> WorldSpec:
+    """The configured world (config/sim.yaml: its layout, dynamics, noise, exact camera) with scenario
+    ``scenario`` and the start ``SimWorld`` draws for ``seed``: the un-randomized reference."""
+    base = load_sim_config()
+    robot = robot or load_robot_model()
+    start = SimWorld(scenario, robot, seed=seed, config=base).start_pose
+    return WorldSpec(seed, "configured", str(base.landmark_path.resolve()), base, base.scenario(scenario), scenario, robot, start)

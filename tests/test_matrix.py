@@ -1,0 +1,161 @@
+"""Objects of real shapes, the world randomizer, and a CI sample of the mission matrix.
+
+* A triangle mesh renders as the exact union of its projected triangles: every pixel where the
+  rendered silhouette and ray-cast truth disagree lies on the truth's outline.
+* ``Scenario.contains`` (the truth of IoU) against analytic solids.
+* ``random_world`` draws every axis of the matrix inside its configured ranges, deterministically.
+* Fixed-seed missions through the NAOqi stand-in (``tools.matrix.run_mission``) in worlds that
+  differ in layout, object size and shape, and sway; each asserts the outcome, centre and radius
+  error, model IoU, closest approach, the robot at rest at the end and how soon it was stopped.
+  The full randomized matrix is a benchmark (``make matrix``, docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from nao_bridge.bridge import BridgeParams
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import planar_transform
+from nao_core.landmark_map import LandmarkMap, load_landmark_map
+from nao_core.robot_model import load_robot_model, nao_to_optical
+from nao_sim.meshes import contains, ellipsoid, winding_numbers
+from nao_sim.randomize import RandomWorld, load_randomizer, random_world
+from nao_sim.render import Renderer
+from nao_sim.scenarios import load_sim_config
+
+ROBOT = load_robot_model()
+CONFIG = load_sim_config()
+
+
+def ray_cast_mask(scenario, intr, T_WC: np.ndarray, box: tuple) -> np.ndarray:
+    """Truth silhouette at pixel centres inside ``box`` (x0, y0, x1, y1): a ray hits a triangle (Moller-Trumbore)."""
+    x0, y0, x1, y1 = box
+    v, u = np.mgrid[y0:y1, x0:x1].astype(float)
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1).reshape(-1, 3) @ T_WC[:3, :3].T
+    origin = T_WC[:3, 3]
+    hit = np.zeros(len(rays), bool)
+    for part in scenario.parts:
+        vertices, faces = part.world_mesh(scenario.position, scenario.yaw)
+        a, b, c = (vertices[faces[:, k]] for k in range(3))
+        e1, e2, s = b - a, c - a, origin - a
+        q = np.cross(s, e1)
+        for i in range(0, len(rays), 2048):
+            d = rays[i : i + 2048]
+            p = np.cross(d[:, None, :], e2[None])
+            det = np.einsum("rfi,fi->rf", p, e1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uu = np.einsum("rfi,fi->rf", p, s) / det
+                vv = (d @ q.T) / det
+                t = np.einsum("fi,fi->f", q, e2)[None] / det
+            hit[i : i + 2048] |= ((uu >= 0) & (vv >= 0) & (uu + vv <= 1) & (t > 0)).any(axis=1)
+    return hit.reshape(y1 - y0, x1 - x0)
+
+
+@pytest.mark.parametrize("name", ["bunny"])
+def test_a_mesh_renders_as_the_exact_union_of_its_triangles(name):
+    scenario = CONFIG.scenario(name)
+    intr = ROBOT.camera.intrinsics("qvga")
+    empty = LandmarkMap(())
+    quiet = dict(pixel_sigma=0.0, gain_sigma=0.0, seed=0)
+    with_object = Renderer(intr, CONFIG.room, empty, scenario, **quiet)
+    without = Renderer(intr, CONFIG.room, empty, dataclasses.replace(scenario, position=(40.0, 40.0)), **quiet)
+    for azimuth in (0.3, 2.0, -2.5):
+        ox, oy = scenario.position
+        pose = (ox + 0.6 * math.cos(azimuth), oy + 0.6 * math.sin(azimuth), azimuth + math.pi)
+        T_WC = planar_transform(*pose) @ nao_to_optical(ROBOT.camera_in_robot_nao(*ROBOT.look_at(pose, (ox, oy, 0.07))))
+        diff = cv2.absdiff(with_object.render(T_WC, 0), without.render(T_WC, 0)).max(axis=2) > 0
+        ys, xs = np.nonzero(diff)
+        assert len(xs) > 500  # the object is in view and large
+        box = (max(xs.min() - 3, 0), max(ys.min() - 3, 0), min(xs.max() + 4, intr.width), min(ys.max() + 4, intr.height))
+        truth = ray_cast_mask(scenario, intr, T_WC, box)
+        rendered = diff[box[1] : box[3], box[0] : box[2]]
+        # the area-exact anti-aliasing covers a pixel partly where an edge crosses it, so a pixel may
+        # differ from its centre's ray only next to the true outline (within one pixel of it)
+        outline = cv2.dilate(truth.astype(np.uint8), np.ones((3, 3), np.uint8)) != cv2.erode(truth.astype(np.uint8), np.ones((3, 3), np.uint8))
+        assert not (rendered != truth)[~outline].any()
+        assert truth.sum() > 0.9 * rendered.sum()
+
+
+def test_winding_number_is_one_inside_and_zero_outside_a_closed_mesh():
+    radii = np.array([0.05, 0.03, 0.04])
+    mesh = ellipsoid((0.1, -0.2, 0.05), radii, n_u=24, n_v=16)
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-1.3, 1.3, (2000, 3))
+    r = np.linalg.norm(points, axis=1)
+    # the polygon lies between the ellipsoid and its inscribed shell: keep points 10 % clear of the surface
+    clear = (r < 0.85) | (r > 1.05)
+    points, r = points[clear], r[clear]
+    world = points * radii + np.array([0.1, -0.2, 0.05])
+    assert np.array_equal(contains(mesh, world), r < 1.0)
+    w = winding_numbers(mesh, world)
+    assert np.allclose(w[r < 1.0], 1.0, atol=1e-6) and np.allclose(w[r > 1.0], 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["can", "remote", "mug", "figure"])
+def test_scenario_contains_matches_its_parts(name):
+    sc = CONFIG.scenario(name)
+    c, s = math.cos(sc.yaw), math.sin(sc.yaw)
+    centres = [(sc.position[0] + c * p.centre[0] - s * p.centre[1], sc.position[1] + s * p.centre[0] + c * p.centre[1], p.centre[2])
+               for p in sc.parts]
+    assert sc.contains(np.array(centres)).all()  # every part's centre, turned with the object
+    far = np.array([[sc.position[0] + sc.radius + 0.01, sc.position[1], 0.01], [sc.position[0], sc.position[1], sc.height + 0.01]])
+    assert not sc.contains(far).any()  # beyond the enclosing cylinder and above the top
+
+
+def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
+    r = load_randomizer()
+    specs = [random_world(seed) for seed in range(40)]
+    assert random_world(7) == specs[7]
+    assert {s.layout for s in specs} == set(r.layouts) and {s.object_name for s in specs} == set(r.objects)
+    configured = ROBOT.camera.intrinsics("qvga")
+    for s in specs:
+        assert r.start_distance[0] <= math.dist(s.start[:2], s.scenario.position) <= r.start_distance[1]
+        bearing = math.remainder(math.atan2(s.scenario.position[1] - s.start[1], s.scenario.position[0] - s.start[0]) - s.start[2], math.tau)
+        assert abs(bearing) <= r.start_bearing + 1e-9
+        room = s.config.room.half_size
+        assert max(abs(s.start[0]), abs(s.start[1])) < room and load_landmark_map(s.landmark_path).landmarks
+        true = s.robot.camera.intrinsics("qvga")
+        assert abs(true.fx / configured.fx - 1.0) == pytest.approx(r.focal_error)
+        assert abs(true.cx - configured.cx) == pytest.approx(r.principal_error)
+        assert r.latency[0] <= s.config.noise.latency[0] <= s.config.noise.latency[1] <= r.latency[1]
+    world = RandomWorld(specs[0])
+    assert world.true_pose() == pytest.approx(specs[0].start) and world.truth()["odom_origin"] == pytest.approx(list(specs[0].start))
+
+
+# --- missions -------------------------------------------------------------------------------------
+
+BRIDGE = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
+# Worlds: seed 1 the low ring and a small flat box (4 cm tall), seed 2 markers on the walls and a
+# 6.6 x 12 cm soda can, seed 4 the sparse layout and the bunny mesh; sway 0.5-1.5 x the default.
+# They fail today (docs/benchmarks.md, matrix section): slow until issue 12's fixes land, then default.
+MISSION_SEEDS = [1, 2, 4]
+
+
+@pytest.fixture(scope="module", params=[pytest.param(s, marks=pytest.mark.slow) for s in MISSION_SEEDS])
+def mission(request, tmp_path_factory):
+    from tools.matrix import run_mission
+
+    return run_mission(request.param, tmp_path_factory.mktemp(f"matrix{request.param}"), "qvga")
+
+
+def test_matrix_mission_completes_accurately_and_stops(mission):
+    r = mission
+    spec = random_world(r.seed)
+    assert r.outcome == "completed", f"{r.world}: {r.reason}"
+    # a quarter of the object's radius (the smallest enclosing cylinder's): the estimated centre lies
+    # well inside the object and the estimated cylinder is the object's size, for any shape
+    assert r.centre_error <= 0.25 * spec.scenario.radius, r.world
+    assert abs(r.radius_error) <= 0.25 * spec.scenario.radius, r.world
+    assert r.iou >= 0.5, r.world  # more of the model is object than not
+    # issue 12: never nearer than 0.35 m (the planner keeps 0.45 m from the estimated surface)
+    assert r.min_clearance >= 0.35, r.world
+    assert r.stopped
+    # the stop reaches the robot within the bridge's deadman after the final decision (the station
+    # sends a zero walk at once; the deadman stops the robot anyway); 1 s margin for a loaded machine
+    assert r.stop_delay is not None and r.stop_delay <= BRIDGE.deadman_s + 1.0

@@ -1,0 +1,235 @@
+"""The randomized mission matrix: whole missions through the NAOqi backend in randomized worlds.
+
+For each seed, ``nao_sim.randomize.random_world(seed)`` draws a world (layout, object, start,
+walking errors, sway, camera calibration error, frame latency, drops, clock offset); the world is
+served by the NAOqi stand-in (``nao_sim.standin.StandIn``) in this process over libqi, and
+``station start --naoqi`` runs the mission against it as a separate process (its bridge drives the
+stand-in with YUV422 frames), with the layout as its landmark map and the configured (not the
+true) camera. Measured against the simulator's truth:
+
+* centre error |(x, y) - (x_true, y_true)| and radius error r - r_true (r_true: the smallest
+  vertical cylinder about the true centre that holds the object);
+* IoU of the final model (voxels.npz) with the true object voxelized on the model's lattice, grown
+  to hold the whole object (``Scenario.contains``: exact for meshes too);
+* minimum clearance: the least horizontal distance from the true robot origin to the object's
+  outline, sampled every ``POLL`` s while the mission runs;
+* the stop: the first ALMotion call that stops the walk after the station's final decision, and
+  whether the robot is at rest when the station has exited.
+
+    python -m tools.matrix [--count 40] [--first-seed 0] [--resolution qvga] [--out runs/matrix]
+                           [--doc docs/benchmarks.md]
+
+A benchmark, not a test: a few fixed seeds run in the default suite (tests/test_matrix.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import yaml
+
+from nao_sim.randomize import RandomWorld, WorldSpec, random_world
+from nao_sim.standin import StandIn
+from station.mcap_log import read_log
+from station.topics import DECISION
+from tools.bench import BEGIN, END, section
+
+POLL = 0.02  # s, truth sampling period for the clearance (<= 2 mm of walking at 0.1 m/s)
+STOP_CALLS = ("ALMotion.stopMove", "ALMotion.killMove")
+MISSION_TIMEOUT = 400.0  # s of wall time, beyond the mission's own limit (start-up, final carve, outputs)
+
+
+@dataclasses.dataclass(frozen=True)
+class MissionResult:
+    seed: int
+    world: dict
+    outcome: str
+    reason: str
+    returncode: int
+    centre_error: Optional[float]  # m
+    radius_error: Optional[float]  # m
+    iou: Optional[float]
+    min_clearance: float  # m
+    duration: Optional[float]  # s, the station's mission time
+    stop_delay: Optional[float]  # s, final decision -> first stop call on the robot
+    stopped: bool  # the robot at rest once the station exited
+    out: str
+
+
+class _ClearanceMonitor(threading.Thread):
+    """Samples the true robot pose every POLL s; keeps the least distance to the object's outline."""
+
+    def __init__(self, world: RandomWorld):
+        super().__init__(daemon=True)
+        self._world = world
+        self._outline = world.scenario.world_points()[:, :2]
+        self.minimum = math.inf
+        self._done = threading.Event()
+
+    def run(self) -> None:
+        while not self._done.wait(POLL):
+            x, y, _ = self._world.true_pose()
+            self.minimum = min(self.minimum, float(np.hypot(*(self._outline - (x, y)).T).min()))
+
+    def stop(self) -> float:
+        self._done.set()
+        self.join()
+        return self.minimum
+
+
+def model_iou(voxels: Path, spec: WorldSpec) -> float:
+    """IoU of the model's occupied voxels with the true object on the same lattice (module docstring)."""
+    data = np.load(voxels)
+    occupancy, origin, pitch = data["occupancy"], data["origin"], float(data["pitch"])
+    points = spec.scenario.world_points()
+    lo = np.minimum(np.floor((points.min(axis=0) - origin) / pitch), 0).astype(int)
+    hi = np.maximum(np.ceil((points.max(axis=0) - origin) / pitch) + 1, occupancy.shape).astype(int)
+    model = np.zeros(hi - lo, dtype=bool)
+    model[tuple(slice(-l, -l + n) for l, n in zip(lo, occupancy.shape))] = occupancy
+    axes = [origin[a] + pitch * np.arange(lo[a], hi[a]) for a in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    true = spec.scenario.contains(centres).reshape(model.shape)
+    either = np.count_nonzero(model | true)
+    return float(np.count_nonzero(model & true) / either) if either else 0.0
+
+
+def _final_decision_time(log: Path) -> Optional[float]:
+    """Log time (station clock, s since the epoch) of the first decision of the final run of stops."""
+    decided = None
+    for message in read_log(log, topics={DECISION}):
+        stop = bool(message.json().get("stop"))
+        decided = (decided if decided is not None else message.t) if stop else None
+    return decided
+
+
+def run_mission(seed: int, out: Path, resolution: str = "qvga", max_duration: Optional[float] = None,
+                spec: Optional[WorldSpec] = None) -> MissionResult:
+    """One mission in world ``spec`` (default: ``random_world(seed)``); the run's files go to ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    spec = spec or random_world(seed)
+    (out / "world.json").write_text(json.dumps(spec.summary(), indent=2) + "\n")
+    override = out / "station.yaml"
+    override.write_text(yaml.safe_dump({"station": {"landmark_map": spec.landmark_path, "resolution": resolution}}))
+    world = RandomWorld(spec, resolution=resolution)
+    monitor = _ClearanceMonitor(world)
+    command = [sys.executable, "-m", "station.cli", "start", "--out", str(out / "run"), "--config", str(override)]
+    if max_duration is not None:
+        command += ["--max-duration", str(max_duration)]
+    with StandIn(world) as standin, open(out / "station.err", "wb") as err:
+        monitor.start()
+        proc = subprocess.Popen([*command, "--naoqi", standin.url], stdout=subprocess.DEVNULL, stderr=err)
+        try:
+            proc.wait(MISSION_TIMEOUT + (max_duration or 0.0))
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        clearance = monitor.stop()
+        stopped = not world.is_walking()
+        calls = standin.calls
+    run = out / "run"
+    result = json.loads((run / "result.json").read_text()) if (run / "result.json").exists() else {}
+    estimate = result.get("object")
+    centre_error = radius_error = iou = stop_delay = None
+    if estimate:
+        centre_error = math.hypot(estimate["x"] - spec.scenario.position[0], estimate["y"] - spec.scenario.position[1])
+        radius_error = estimate["r"] - spec.scenario.radius
+    if (run / "voxels.npz").exists():
+        iou = model_iou(run / "voxels.npz", spec)
+    decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
+    if decided is not None:
+        after = [c.time for c in calls if c.name in STOP_CALLS and c.time >= decided]
+        stop_delay = after[0] - decided if after else None
+    return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
+                         centre_error, radius_error, iou, clearance, result.get("duration"), stop_delay, stopped, str(out))
+
+
+def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
+
+
+def table(results: List[MissionResult]) -> str:
+    """Markdown: a summary per object kind and overall, then one row per mission."""
+    done = [r for r in results if r.outcome == "completed"]
+
+    def stats(rows: List[MissionResult], label: str) -> str:
+        ok = [r for r in rows if r.outcome == "completed"]
+        centre = [r.centre_error for r in ok if r.centre_error is not None]
+        radius = [abs(r.radius_error) for r in ok if r.radius_error is not None]
+        iou = [r.iou for r in ok if r.iou is not None]
+        dur = [r.duration for r in ok if r.duration is not None]
+        med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
+        return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
+                f"{_fmt(max(centre) if centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
+                f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} |")
+
+    objects = sorted({r.world["object"] for r in results})
+    lines = [
+        f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`), each through the NAOqi backend "
+        "against the stand-in (YUV422, latency, drops, clock offset), in a random landmark layout, with a random object, "
+        "start pose (1.0-1.2 m, object up to 120 deg off the heading), walking errors, sway and a camera calibration "
+        "off by 0.5 % and 1 px. Errors over completed missions; clearance is the least over all missions (true robot "
+        "origin to the object's outline).",
+        "",
+        "| object | completed | error | centre median (mm) | centre max (mm) | |radius err| median (mm) | IoU median | min clearance (m) | duration median (s) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
+        stats(results, "**all**"),
+        "",
+        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | clearance (m) | duration (s) | stop after decision (ms) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
+          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_fmt(r.min_clearance, 1, 3)} | {_fmt(r.duration, 1, 0)} | "
+          f"{_fmt(r.stop_delay, 1000, 0)} |" for r in results],
+    ]
+    if len(done) < len(results):
+        lines += ["", "Reasons of the missions that did not complete:", ""]
+        lines += [f"- seed {r.seed}: `{r.outcome}`: {r.reason[:200]}" for r in results if r.outcome != "completed"]
+    return "\n".join(lines)
+
+
+def write_section(doc: Path, body: str) -> None:
+    """Replace (or append) the ``matrix`` section of the benchmarks document, as tools/bench.py does."""
+    text = doc.read_text() if doc.exists() else "# Benchmarks\n"
+    new = section("matrix", "## Mission matrix: randomized worlds through the NAOqi stand-in\n\n" + body)
+    pattern = re.compile(re.escape(BEGIN.format(name="matrix")) + r".*?" + re.escape(END.format(name="matrix")) + r"\n", re.S)
+    doc.write_text(pattern.sub(lambda _: new, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + new)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--count", type=int, default=40, help="missions (seeds first-seed .. first-seed + count - 1)")
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--resolution", default="qvga")
+    parser.add_argument("--out", type=Path, default=Path("runs/matrix"))
+    parser.add_argument("--doc", type=Path, default=Path("docs/benchmarks.md"), help="document whose matrix section is rewritten")
+    args = parser.parse_args(argv)
+    if args.count < 1:
+        parser.error("--count must be at least 1")
+    results = []
+    for seed in range(args.first_seed, args.first_seed + args.count):
+        start = time.monotonic()
+        result = run_mission(seed, args.out / f"seed{seed:03d}", args.resolution)
+        results.append(result)
+        (args.out / f"seed{seed:03d}" / "matrix.json").write_text(json.dumps(dataclasses.asdict(result), indent=2) + "\n")
+        print(f"matrix: seed {seed} {result.world['layout']}/{result.world['object']}: {result.outcome}, centre "
+              f"{_fmt(result.centre_error, 1000)} mm, IoU {_fmt(result.iou, 1, 3)}, clearance {_fmt(result.min_clearance, 1, 3)} m "
+              f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
+    write_section(args.doc, table(results))
+    print(f"matrix: wrote the matrix section of {args.doc}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
