@@ -26,6 +26,7 @@ from agent.carving import (
     VoxelCarver,
     carve,
     estimate_footprint,
+    refine_poses,
     volume_bounds,
 )
 from agent.ekf import position_std
@@ -42,6 +43,7 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
     one per view or None) colour the model's mesh.
     """
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
+    views = refine_poses(views, lo, hi, params, estimate_footprint(lo, hi))
     return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
 
 
