@@ -13,7 +13,8 @@ true) camera. Measured against the simulator's truth:
   to hold the whole object (``Scenario.contains``: exact for meshes too);
 * minimum clearance: the least horizontal distance from the true robot origin to the object's
   outline, sampled every ``POLL`` s while the mission runs;
-* the stop: the first ALMotion call that stops the walk after the station's final decision, and
+* the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
+  the station's final decision, and
   whether the robot is at rest when the station has exited.
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution qvga] [--out runs/matrix]
@@ -149,7 +150,7 @@ def run_mission(seed: int, out: Path, resolution: str = "qvga", max_duration: Op
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
     if decided is not None:
-        after = [c.time for c in calls if c.name in STOP_CALLS and c.time >= decided]
+        after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, result.get("duration"), stop_delay, stopped, str(out))
@@ -182,7 +183,7 @@ def table(results: List[MissionResult]) -> str:
         "off by 0.5 % and 1 px. Errors over completed missions; clearance is the least over all missions (true robot "
         "origin to the object's outline).",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | |radius err| median (mm) | IoU median | min clearance (m) | duration median (s) |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
