@@ -29,6 +29,15 @@ from nao_core.transport import TransportConfig
 log = logging.getLogger("nao_bridge")
 
 
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("nao-active-recon")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="nao-bridge", description=__doc__.splitlines()[0])
     target = parser.add_mutually_exclusive_group(required=True)
@@ -41,6 +50,9 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     parser.add_argument("--secure", metavar="CERT_DIR", help="mutual TLS and the bridge's access policy (docs/security.md)")
     parser.add_argument("--config", action="append", default=[], metavar="FILE", help="bridge config override(s) (top-level key bridge), merged in order")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("-v", dest="log_level", action="store_const", const="DEBUG", help="--log-level DEBUG")
+    parser.add_argument("-q", dest="log_level", action="store_const", const="WARNING", help="--log-level WARNING")
+    parser.add_argument("--version", action="version", version=f"nao-bridge {_version()}")
     return parser.parse_args(argv)
 
 

@@ -6,15 +6,16 @@ reprojection error over K, the distortion (k1, k2, p1, p2, k3) and one pose per 
 is written in the shape of ``robot.camera.resolutions.<name>`` of config/robots/nao_v6.yaml, so
 it can be passed to the bridge and the station with ``--config``.
 
-Usage::
+Usage (images from ``station capture``)::
 
-    .venv/bin/python -m tools.calibrate_camera --pattern 9x6 --square 0.025 --resolution vga \\
-        --output config/robots/my_nao.yaml shots/*.png
+    station calibrate --pattern 9x6 --square 0.025 --resolution vga --output my_nao.yaml shots/*.jpg
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import math
 import sys
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
@@ -24,6 +25,7 @@ import numpy as np
 import yaml
 
 MIN_VIEWS = 5
+log = logging.getLogger("station.calibrate")
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 
 
@@ -95,22 +97,32 @@ def config_yaml(result: dict, resolution: str) -> str:
         "dist": [round(float(d), 6) for d in dist],
     }
     header = (
-        f"# tools/calibrate_camera.py: {len(result['used'])} views, reprojection RMS {result['rms']:.3f} px\n"
+        f"# station calibrate: {len(result['used'])} views, reprojection RMS {result['rms']:.3f} px\n"
         "# Pass with --config to override the robot model's intrinsics at this resolution.\n"
     )
     return header + yaml.safe_dump({"robot": {"camera": {"resolutions": {resolution: entry}}}}, sort_keys=False)
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="calibrate_camera", description=__doc__.split("\n\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, help="chessboard images (all the same size)")
     parser.add_argument("--pattern", type=parse_pattern, required=True, help="inner corners COLSxROWS, e.g. 9x6")
-    parser.add_argument("--square", type=float, required=True, help="side of one square, m")
+    parser.add_argument("--square", type=positive_length, required=True, help="side of one square, m")
     parser.add_argument("--resolution", default="vga", help="resolution name in the robot config (vga, qvga)")
     parser.add_argument("--output", type=Path, help="YAML file to write (default: print)")
-    args = parser.parse_args(argv)
-    if not args.square > 0:
-        parser.error(f"--square must be a positive length in metres, got {args.square}")
+
+
+def positive_length(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"--square must be a positive length in metres, got {text}")
+    return value
+
+
+def run(args: argparse.Namespace) -> int:
+    """``station calibrate``: 0, or 2 with one line naming what was wrong."""
     try:
         result = calibrate(args.images, args.pattern, args.square)
         text = config_yaml(result, args.resolution)
@@ -119,13 +131,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         else:
             args.output.write_text(text, encoding="utf-8")
     except (CalibrationError, OSError, cv2.error) as exc:
-        print(f"calibrate_camera: error: {exc}", file=sys.stderr)
+        log.error("calibrate: %s", exc)
         return 2
     for path in result["skipped"]:
-        print(f"calibrate_camera: board not found in {path} (skipped)", file=sys.stderr)
-    print(f"calibrate_camera: {len(result['used'])} views, RMS {result['rms']:.3f} px", file=sys.stderr)
+        log.warning("calibrate: board not found in %s (skipped)", path)
+    log.info("calibrate: %d views, RMS %.3f px", len(result["used"]), result["rms"])
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -10,13 +10,18 @@ otherwise be ignored silently). The robot model is the one the bridge reports in
 source of truth for the robot); a ``robot`` section (e.g. a calibrated camera) is accepted here and
 handed to the bridges the station starts itself (``--robot sim``, ``--naoqi``). The landmark map
 is the file ``station.landmark_map`` names.
+
+``station config`` prints the resolved configuration with, for each leaf key, the file that set it
+(:func:`provenance`: the last file of the merge order holding the key).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Sequence, Union
+from typing import Any, Dict, Sequence, Tuple, Union
 
 from agent.carving import CarvingParams
 from agent.ekf import EKFParams
@@ -42,6 +47,7 @@ class StationParams:
     flush_interval: float = field(default=1.0, metadata=bounds(0.05, 60.0))
     keyframe_min_angle: float = field(default=0.17, metadata=bounds(0.0, 3.2))
     carve_max_position_std: float = field(default=0.02, metadata=bounds(1e-4, 10.0))
+    doctor_min_battery: float = field(default=0.3, metadata=bounds(0.0, 1.0))
 
 
 SECTIONS: Dict[str, type] = {
@@ -93,3 +99,53 @@ def load_station_config(overrides: Sequence[Union[str, Path]] = ()) -> StationCo
 
 def _top_level(path: Path) -> Dict[str, Any]:
     return read_yaml(path, what="a mapping of sections")
+
+
+def provenance(overrides: Sequence[Union[str, Path]] = ()) -> Dict[str, Tuple[Any, str]]:
+    """Every leaf key of the resolved configuration, ``section.key[.sub...]`` -> (value, the file that
+    set it): the last of [config/<section>.yaml, *overrides] holding the key (later files win)."""
+    config = load_station_config(overrides)
+    result: Dict[str, Tuple[Any, str]] = {}
+    for name in SECTIONS:
+        files = [CONFIG_DIR / f"{name}.yaml", *map(Path, overrides)]
+        set_by = {}
+        for path in files:
+            for key in _leaves(read_yaml(path, what="a mapping of sections").get(name) or {}, name):
+                set_by[key] = str(path)
+        for key, value in _leaves(dataclasses.asdict(getattr(config, name)), name).items():
+            result[key] = (value, set_by.get(key, _nearest(key, set_by)))
+    return result
+
+
+def print_config(args: Any) -> int:
+    """``station config``: the resolved configuration, one key a line with its source (or ``--json``)."""
+    table = provenance(args.config)
+    if args.json:
+        print(json.dumps({key: {"value": value, "file": source} for key, (value, source) in table.items()}, indent=1))
+        return 0
+    width = max(map(len, table))
+    for key, (value, source) in table.items():
+        print(f"{key:<{width}}  {json.dumps(value)}  # {source}")
+    return 0
+
+
+def _leaves(mapping: Any, prefix: str) -> Dict[str, Any]:
+    """Flatten nested mappings to dotted keys; lists and scalars are leaves."""
+    if not isinstance(mapping, dict):
+        return {prefix: mapping}
+    out: Dict[str, Any] = {}
+    for key, value in mapping.items():
+        out.update(_leaves(value, f"{prefix}.{key}"))
+    return out
+
+
+def _nearest(key: str, set_by: Dict[str, str]) -> str:
+    """The file that set the closest enclosing key (a whole mapping replaced), else the code's default."""
+    while "." in key:
+        key = key.rsplit(".", 1)[0]
+        if key in set_by:
+            return set_by[key]
+    for other, path in set_by.items():
+        if other.startswith(key + "."):
+            return path
+    return "default"

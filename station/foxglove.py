@@ -8,33 +8,52 @@ ellipse, the landmarks, one frustum per keyframe, the carved model (GLB).
 3-sigma ellipse of the 2x2 centre covariance P_xy = V diag(l1, l2) V^T::
 
     e(s) = o + 3 V diag(sqrt(l1), sqrt(l2)) (cos s, sin s),   s in [0, 2 pi)
+
+The robot's trajectory is a ``PosesInFrame`` in ``world`` (one pose (x, y, theta) per localized
+frame). Image annotations (``ImageAnnotations``, stamped like the image they belong to) are drawn
+from the frame's records by projecting world points with the frame's T_WC, u ~ K T_CW X:
+
+* the silhouette outline (its left and right edges, pixels as measured);
+* the two tangent rays, bearings phi -+ delta / 2 from the camera centre C, sampled at the aim
+  height h: X(d) = (C_x + d cos b, C_y + d sin b, h), d in [d_min, d_max];
+* the landmarks the localizer used, at their map positions, labelled with their ids;
+* the predicted object position, the estimate's centre (o_x, o_y, h).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Iterable, Optional, Sequence, Tuple
 
+import cv2
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CircleAnnotation_pb2 import CircleAnnotation
 from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
 from foxglove_schemas_protobuf.CylinderPrimitive_pb2 import CylinderPrimitive
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.ModelPrimitive_pb2 import ModelPrimitive
+from foxglove_schemas_protobuf.Point2_pb2 import Point2
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.TextAnnotation_pb2 import TextAnnotation
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.timestamp_pb2 import Timestamp
 from scipy.spatial.transform import Rotation
 
 from agent.camera import CameraModel
+from nao_core.geometry import planar_transform
 from nao_core.landmark_map import LandmarkMap
 from station.mcap_log import to_ns
 
@@ -140,3 +159,74 @@ def _translation(x: float, y: float, z: float) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = (x, y, z)
     return T
+
+
+def trajectory(t: float, poses: Sequence[Tuple[float, float, float]]) -> PosesInFrame:
+    """The robot's localized poses (x, y, theta) so far, in ``world``."""
+    return PosesInFrame(timestamp=stamp(t), frame_id=WORLD, poses=[pose(planar_transform(*p)) for p in poses])
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What one frame's annotations show; all optional but the camera pose (module docstring)."""
+
+    T_WC: np.ndarray  # 4x4 camera in world at capture
+    outline: Optional[np.ndarray] = None  # (N, 2) silhouette outline pixels (u, v)
+    bearings: Optional[Tuple[Tuple[float, float], float, float]] = None  # camera (x, y), phi, delta (None: cut)
+    landmarks: Sequence[Tuple[str, Tuple[float, float, float]]] = ()  # (id, world position) of those used
+    predicted: Optional[Tuple[float, float]] = None  # the estimate's centre (x, y)
+    aim_height: float = 0.1  # height of the rays and the predicted position, m
+
+
+def frame_view(pose, measurement, estimate: Optional[Tuple[float, float]], mask: Optional[np.ndarray],
+               landmark_map: LandmarkMap, aim_height: float) -> FrameView:
+    """A frame's view from the pilot's records (``station.outputs`` PoseRecord, MeasurementRecord or None),
+    the latest estimate's centre and the keyframe's silhouette mask (None: not a keyframe)."""
+    outline = None
+    if mask is not None:
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        outline = max(contours, key=len).reshape(-1, 2) if contours else None
+    used = [(str(lm.id), lm.position) for lm in landmark_map.landmarks] if pose.landmark_fix else []
+    bearings = ((measurement.cam[0], measurement.cam[1]), measurement.phi, measurement.delta) if measurement else None
+    return FrameView(T_WC=np.asarray(pose.T_WC, dtype=float).reshape(4, 4), outline=outline, bearings=bearings,
+                     landmarks=used, predicted=estimate, aim_height=aim_height)
+
+
+def image_annotations(stamp_s: float, camera: CameraModel, view: FrameView, ray_range: Tuple[float, float] = (0.15, 4.0)
+                      ) -> ImageAnnotations:
+    """The annotations of one frame (stamp = the image's capture time, so Foxglove pairs them)."""
+    ts = stamp(stamp_s)
+    points, circles, texts = [], [], []
+
+    def project(X: np.ndarray) -> np.ndarray:
+        uv, in_front = camera.project_world(X, view.T_WC)
+        return uv[in_front]
+
+    def strip(uv: np.ndarray, color: Color, kind: int = PointsAnnotation.LINE_STRIP) -> None:
+        if len(uv) >= 2:
+            points.append(PointsAnnotation(timestamp=ts, type=kind, outline_color=color, thickness=2.0,
+                                           points=[Point2(x=float(u), y=float(v)) for u, v in uv]))
+
+    def label(uv: np.ndarray, text: str, color: Color) -> None:
+        circles.append(CircleAnnotation(timestamp=ts, position=Point2(x=float(uv[0]), y=float(uv[1])), diameter=10.0,
+                                        thickness=2.0, outline_color=color))
+        texts.append(TextAnnotation(timestamp=ts, position=Point2(x=float(uv[0]) + 6, y=float(uv[1]) - 6), text=text,
+                                    font_size=12.0, text_color=color, background_color=_color(0, 0, 0, 0.5)))
+
+    if view.outline is not None and len(view.outline):
+        strip(np.asarray(view.outline, dtype=float), _color(0.1, 1.0, 0.2), PointsAnnotation.POINTS)
+    if view.bearings is not None:
+        (cx, cy), phi, delta = view.bearings
+        d = np.linspace(*ray_range, 24)
+        for b in ((phi - 0.5 * delta, phi + 0.5 * delta) if delta is not None else (phi,)):
+            X = np.stack([cx + d * math.cos(b), cy + d * math.sin(b), np.full_like(d, view.aim_height)], axis=1)
+            strip(project(X), _color(1.0, 0.6, 0.0))
+    for landmark_id, position in view.landmarks:
+        uv = project(np.asarray([position], dtype=float))
+        if len(uv):
+            label(uv[0], str(landmark_id), _color(0.2, 0.8, 1.0))
+    if view.predicted is not None:
+        uv = project(np.array([[view.predicted[0], view.predicted[1], view.aim_height]]))
+        if len(uv):
+            label(uv[0], "object (predicted)", _color(1.0, 0.2, 0.8))
+    return ImageAnnotations(points=points, circles=circles, texts=texts)

@@ -4,7 +4,8 @@ Writing: every channel is registered on first use with its schema; JSON payloads
 the wire are logged as the received bytes, unchanged. The ``mcap`` writer keeps messages in
 memory until a chunk fills, so :meth:`McapLog.maybe_flush` closes the chunk in progress about once
 a second (``flush_interval``): a crash loses at most that much. The writer is shared by the
-control loop and the carving worker, hence the lock.
+control loop and the carving worker, hence the lock. Sinks (:class:`LogSink`, e.g. the live
+Foxglove server of :mod:`station.live`) receive every channel and message as they are written.
 
 Reading: :func:`read_log` yields messages in file order (the order they were written, which is
 the order the station processed them: replay depends on it). A file cut by a crash has no
@@ -20,7 +21,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterator, Optional, Protocol, Sequence, Tuple, Union
 
 from google.protobuf.message import Message as ProtoMessage
 from mcap.exceptions import McapError
@@ -28,7 +29,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
-from mcap_protobuf.schema import register_schema
+from mcap_protobuf.schema import build_file_descriptor_set
 
 JsonPayload = Union[bytes, Dict[str, Any]]
 
@@ -46,10 +47,19 @@ def to_ns(t: float) -> int:
     return int(round(t * 1e9))
 
 
+class LogSink(Protocol):
+    """Receives what the log writes: each channel once (before its first message), then its messages."""
+
+    def channel(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str, schema: bytes) -> None: ...
+
+    def message(self, topic: str, data: bytes, log_time_ns: int) -> None: ...
+
+
 class McapLog:
     """Append-only run log. ``t`` arguments are station-clock seconds (``time.time()``)."""
 
-    def __init__(self, path: Union[str, Path], flush_interval: float = 1.0, clock: Callable[[], float] = time.time):
+    def __init__(self, path: Union[str, Path], flush_interval: float = 1.0, clock: Callable[[], float] = time.time,
+                 sinks: Sequence[LogSink] = ()):
         self.path = Path(path)
         self._file = open(self.path, "wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
@@ -61,20 +71,23 @@ class McapLog:
         self._clock = clock
         self._last_flush = clock()
         self._closed = False
+        self._sinks = tuple(sinks)
 
     def json(self, topic: str, payload: JsonPayload, t: float, schema: Dict[str, Any]) -> None:
         """Log a JSON message: ``bytes`` are logged as they are, a dict is serialized."""
         data = payload if isinstance(payload, bytes) else encode_json(payload)
         name = schema.get("title", topic)
         with self._lock:
-            channel = self._channel(topic, "json", lambda: self._schema(name, "jsonschema", json.dumps(schema).encode()))
-            self._add(channel, data, t)
+            channel = self._channel(topic, "json", name, "jsonschema", lambda: json.dumps(schema).encode())
+            self._add(topic, channel, data, t)
 
     def proto(self, topic: str, message: ProtoMessage, t: float) -> None:
         """Log a protobuf message (Foxglove schemas are named ``foxglove.<Name>``)."""
         with self._lock:
-            channel = self._channel(topic, "protobuf", lambda: self._proto_schema(type(message)))
-            self._add(channel, message.SerializeToString(), t)
+            name = message.DESCRIPTOR.full_name
+            channel = self._channel(topic, "protobuf", name, "protobuf",
+                                    lambda: build_file_descriptor_set(type(message)).SerializeToString())
+            self._add(topic, channel, message.SerializeToString(), t)
 
     def maybe_flush(self) -> bool:
         """Write the chunk in progress to disk when ``flush_interval`` has passed; True if flushed."""
@@ -101,28 +114,25 @@ class McapLog:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def _channel(self, topic: str, encoding: str, schema_id: Callable[[], int]) -> int:
+    def _channel(self, topic: str, encoding: str, schema_name: str, schema_encoding: str, schema: Callable[[], bytes]) -> int:
+        """The topic's channel id, registering it (and its schema, once per name) on first use."""
         if topic not in self._channels:
-            self._channels[topic] = self._writer.register_channel(topic, encoding, schema_id())
+            key = (schema_name, schema_encoding)
+            data = schema()
+            if key not in self._schemas:
+                self._schemas[key] = self._writer.register_schema(schema_name, schema_encoding, data)
+            self._channels[topic] = self._writer.register_channel(topic, encoding, self._schemas[key])
+            for sink in self._sinks:
+                sink.channel(topic, encoding, schema_name, schema_encoding, data)
         return self._channels[topic]
 
-    def _schema(self, name: str, encoding: str, data: bytes) -> int:
-        key = (name, encoding)
-        if key not in self._schemas:
-            self._schemas[key] = self._writer.register_schema(name, encoding, data)
-        return self._schemas[key]
-
-    def _proto_schema(self, cls: type) -> int:
-        key = (cls.DESCRIPTOR.full_name, "protobuf")
-        if key not in self._schemas:
-            self._schemas[key] = register_schema(self._writer, cls)
-        return self._schemas[key]
-
-    def _add(self, channel: int, data: bytes, t: float) -> None:
+    def _add(self, topic: str, channel: int, data: bytes, t: float) -> None:
         if self._closed:
             raise RuntimeError(f"{self.path}: log already closed")
         stamp = to_ns(t)
         self._writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp)
+        for sink in self._sinks:
+            sink.message(topic, data, stamp)
 
 
 @dataclass(frozen=True)

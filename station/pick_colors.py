@@ -8,14 +8,15 @@ so it is summarized around its circular mean m (angles 2 pi h / 180)::
 a range with lo > hi wrapping through 0 as ``agent.perception.color_mask`` expects. Saturation and
 value take the p and 100 - p percentiles, widened by ``margin_sv`` and clipped to [0, 255].
 
-Usage::
+Usage (images from ``station capture``)::
 
-    .venv/bin/python -m tools.pick_colors red frame1.png:210,140,40,60 frame2.png:90,100,30,30
+    station pick-colors red frame1.jpg:210,140,40,60 frame2.jpg:90,100,30,30
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
@@ -24,6 +25,7 @@ import cv2
 import numpy as np
 import yaml
 
+log = logging.getLogger("station.pick_colors")
 Region = Tuple[Path, Tuple[int, int, int, int]]
 
 
@@ -78,26 +80,34 @@ def hsv_ranges(hsv: np.ndarray, percentile: float, margin_h: int, margin_sv: int
     return {"hue": hue, "saturation": channel(hsv[:, 1]), "value": channel(hsv[:, 2])}
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="pick_colors", description=__doc__.split("\n\n")[0])
+def percentile(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value < 50.0:
+        raise argparse.ArgumentTypeError(f"--percentile must be in [0, 50), got {text}")
+    return value
+
+
+def margin(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"margins must be non-negative, got {text}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("name", help="colour class name (e.g. red)")
     parser.add_argument("regions", nargs="+", type=parse_region, help="IMAGE:X,Y,W,H sample regions")
-    parser.add_argument("--percentile", type=float, default=1.0, help="ignore this percent of outliers at each end")
-    parser.add_argument("--margin-h", type=int, default=3, help="hue margin (OpenCV units, degrees / 2)")
-    parser.add_argument("--margin-sv", type=int, default=20, help="saturation and value margin (0-255)")
-    args = parser.parse_args(argv)
-    if not 0.0 <= args.percentile < 50.0:
-        parser.error(f"--percentile must be in [0, 50), got {args.percentile}")
-    if args.margin_h < 0 or args.margin_sv < 0:
-        parser.error("margins must be non-negative")
+    parser.add_argument("--percentile", type=percentile, default=1.0, help="ignore this percent of outliers at each end")
+    parser.add_argument("--margin-h", type=margin, default=3, help="hue margin (OpenCV units, degrees / 2)")
+    parser.add_argument("--margin-sv", type=margin, default=20, help="saturation and value margin (0-255)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``station pick-colors``: the YAML on stdout and 0, or 2 with one line naming what was wrong."""
     try:
         ranges = hsv_ranges(sample_hsv(args.regions), args.percentile, args.margin_h, args.margin_sv)
     except (SampleError, OSError, cv2.error) as exc:
-        print(f"pick_colors: error: {exc}", file=sys.stderr)
+        log.error("pick-colors: %s", exc)
         return 2
     sys.stdout.write(yaml.safe_dump({"perception": {"colors": {args.name: ranges}}}, default_flow_style=None, sort_keys=False))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,4 +1,5 @@
-"""The `station` command line: bad input gives one clear line and an exit code, never a traceback."""
+"""The `station` command line: bad input gives one clear line and an exit code, never a traceback;
+a bridge the station started that exits ends the command with its last log lines and exit 2."""
 
 from __future__ import annotations
 
@@ -18,6 +19,9 @@ def station(*args: str) -> subprocess.CompletedProcess:
     (["start", "--robot", "sim", "--max-duration", "-5"], 2, "expected a positive number"),
     (["carve", "x.mcap", "--tolerance", "-1"], 2, "expected an integer >= 0"),
     (["replay", "/nonexistent/run.mcap"], 1, "No such file"),
+    (["start", "--robot", "sim", "--scenario", "bogus"], 2, "invalid choice: 'bogus'"),
+    (["start", "--robot", "sim", "--resolution", "xga"], 2, "invalid choice: 'xga'"),
+    (["capture", "-o", "/tmp/x", "--count", "-2"], 2, "expected an integer >= 0"),
 ])
 def test_usage_errors(args, code, message):
     result = station(*args)
@@ -44,5 +48,64 @@ def test_unreachable_robot_writes_result(tmp_path):
     override = tmp_path / "o.yaml"
     override.write_text("station:\n  port: 9\n  bridge_timeout: 1.0\n")
     result = station("start", "--robot", "127.0.0.1", "--config", str(override), "--out", str(tmp_path / "run"))
-    assert result.returncode == 1 and "no info from the bridge" in result.stderr
+    assert result.returncode == 2 and "no info from the bridge" in result.stderr and "within 1 s" in result.stderr
     assert json.loads((tmp_path / "run" / "result.json").read_text())["outcome"] == "bridge_unavailable"
+
+
+def test_started_bridge_that_exits_ends_the_start_with_its_log(tmp_path):
+    """Nothing listens on the NAOqi port: the bridge exits at once; the station does not wait out
+    bridge_timeout (set far above anything the test harness would allow) and shows why."""
+    override = tmp_path / "o.yaml"
+    override.write_text("station:\n  bridge_timeout: 600\n")
+    from station.launch import free_port
+
+    result = subprocess.run([sys.executable, "-m", "station.cli", "start", "--naoqi", f"tcp://127.0.0.1:{free_port()}",
+                             "--config", str(override), "--out", str(tmp_path / "run")],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert "the bridge exited with code" in result.stderr and "station: error: bridge: " in result.stderr
+    bridge_log = (tmp_path / "run" / "bridge.log").read_text().strip().splitlines()
+    assert bridge_log[-1] in result.stderr  # its last line, verbatim
+    assert json.loads((tmp_path / "run" / "result.json").read_text())["outcome"] == "bridge_unavailable"
+
+
+def test_version_on_both_command_lines():
+    for module in ("station.cli", "nao_bridge.cli"):
+        result = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0 and result.stdout.split()[1][0].isdigit(), result
+
+
+def test_help_documents_exit_codes():
+    result = station("--help")
+    assert result.returncode == 0
+    for code in ("0 success", "1 failure", "2 configuration, usage or connection error", "3 (start) the time limit"):
+        assert code in " ".join(result.stdout.split())
+
+
+def test_config_names_the_file_that_set_each_key(tmp_path):
+    override = tmp_path / "o.yaml"
+    override.write_text("mission:\n  max_duration: 42\n")
+    result = station("config", "--config", str(override), "--json")
+    table = json.loads(result.stdout)
+    assert table["mission.max_duration"] == {"value": 42.0, "file": str(override)}
+    assert table["station.port"]["file"].endswith("station.yaml")
+    assert all(entry["file"] != "default" for entry in table.values())  # every default lives in config/*.yaml
+
+
+def test_quiet_and_verbose(tmp_path):
+    views = tmp_path / "none"
+    quiet = station("-q", "capture", "--log", str(tmp_path / "missing.mcap"), "-o", str(views))
+    assert quiet.returncode == 1 and "station: error:" in quiet.stderr  # errors pass -q
+    log = tmp_path / "run.mcap"
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from station.mcap_log import McapLog
+
+    with McapLog(log) as run_log:
+        for i in range(5):
+            run_log.proto("/nao/camera/image", CompressedImage(format="jpeg", data=b"jpeg%d" % i), float(i))
+    quiet = station("capture", "-q", "--log", str(log), "-o", str(views), "--every", "2")
+    assert quiet.returncode == 0 and quiet.stderr == ""
+    assert sorted(p.read_bytes() for p in views.iterdir()) == [b"jpeg0", b"jpeg2", b"jpeg4"]  # one per 2 s of log time
+    verbose = station("capture", "-v", "--log", str(log), "-o", str(tmp_path / "v"), "--count", "2")
+    assert "saved frame_0002.jpg" in verbose.stderr and "capture: 2 frames" in verbose.stderr

@@ -1,4 +1,4 @@
-"""Tools: camera calibration recovers a known K from synthetic chessboard views and writes a config
+"""`station calibrate` and `station pick-colors`: camera calibration recovers a known K from synthetic chessboard views and writes a config
 the robot-model loader accepts; the colour picker's ranges (red wraps through hue 0) segment the
 sampled region; bad input gives an error message and exit code 2, never a traceback."""
 
@@ -14,7 +14,7 @@ import yaml
 from agent.perception import ColorClass, color_mask
 from nao_core.config import from_mapping
 from nao_core.robot_model import load_robot_model
-from tools import calibrate_camera, pick_colors
+from station.cli import main as station
 
 K_TRUE = np.array([[587.0, 0.0, 318.0], [0.0, 590.0, 243.0], [0.0, 0.0, 1.0]])
 PATTERN = (9, 6)
@@ -62,7 +62,7 @@ def chessboard_views(tmp_path_factory):
 def test_calibration_recovers_a_known_K_within_1_percent(chessboard_views, tmp_path):
     output = tmp_path / "calib.yaml"
     args = ["--pattern", "9x6", "--square", str(SQUARE), "--resolution", "vga", "--output", str(output)]
-    assert calibrate_camera.main([*args, *map(str, chessboard_views)]) == 0
+    assert station(["calibrate", *args, *map(str, chessboard_views)]) == 0
     entry = yaml.safe_load(output.read_text())["robot"]["camera"]["resolutions"]["vga"]
     for key, truth in [("fx", K_TRUE[0, 0]), ("fy", K_TRUE[1, 1]), ("cx", K_TRUE[0, 2]), ("cy", K_TRUE[1, 2])]:
         assert entry[key] == pytest.approx(truth, rel=0.01), key
@@ -87,12 +87,12 @@ def test_calibration_errors_are_messages_not_tracebacks(chessboard_views, tmp_pa
         ([*base, *map(str, chessboard_views[:2]), str(small)], "320x240"),
     ]
     for argv, message in cases:
-        assert calibrate_camera.main(argv) == 2
+        assert station(["calibrate", *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err
     for argv in (["--pattern", "9by6", "--square", "0.03", str(blank)], ["--pattern", "9x6", "--square", "-1", str(blank)]):
         with pytest.raises(SystemExit) as exc:
-            calibrate_camera.main(argv)
+            station(["calibrate", *argv])
         assert exc.value.code == 2 and "Traceback" not in capsys.readouterr().err
 
 
@@ -109,7 +109,7 @@ def test_pick_colors_red_wraps_and_segments_the_region(tmp_path, capsys):
     image = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
     path = tmp_path / "sample.png"
     cv2.imwrite(str(path), image)
-    assert pick_colors.main(["red", f"{path}:30,20,60,40"]) == 0
+    assert station(["pick-colors", "red", f"{path}:30,20,60,40"]) == 0
     ranges = yaml.safe_load(capsys.readouterr().out)["perception"]["colors"]["red"]
     assert ranges["hue"][0] > ranges["hue"][1]  # wraps through 0
     color = from_mapping(ColorClass, ranges)
@@ -121,11 +121,11 @@ def test_pick_colors_red_wraps_and_segments_the_region(tmp_path, capsys):
 def test_pick_colors_bad_input_is_a_message(tmp_path, capsys):
     path = tmp_path / "sample.png"
     cv2.imwrite(str(path), np.zeros((50, 50, 3), np.uint8))
-    assert pick_colors.main(["red", f"{path}:40,40,20,20"]) == 2
+    assert station(["pick-colors", "red", f"{path}:40,40,20,20"]) == 2
     assert "leaves the 50x50 image" in capsys.readouterr().err
-    assert pick_colors.main(["red", f"{tmp_path / 'nope.png'}:0,0,5,5"]) == 2
+    assert station(["pick-colors", "red", f"{tmp_path / 'nope.png'}:0,0,5,5"]) == 2
     assert "no such file" in capsys.readouterr().err
     for bad in (f"{path}:1,2,3", f"{path}:0,0,0,5", "0,0,5,5"):
         with pytest.raises(SystemExit) as exc:
-            pick_colors.main(["red", bad])
+            station(["pick-colors", "red", bad])
         assert exc.value.code == 2 and "Traceback" not in capsys.readouterr().err
