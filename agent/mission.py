@@ -26,7 +26,8 @@ before anything else happens, whatever the outcome.
 
 In LOCALIZE the mission keeps the robot still and leaves the head to the caller; in ACTIVE it
 does not choose the motion: ``Decision.walk`` and ``Decision.head`` are None
-and the caller applies the planner's command and the head servo's target.
+and the caller applies the planner's command and the head servo's target (or, while the pose is
+uncertain, ``lookout_std``, alternates it with the best landmark direction: station/pilot.py).
 """
 
 from __future__ import annotations
@@ -80,6 +81,8 @@ class MissionParams:
     no_fix_timeout: float = field(metadata=bounds(0.1, 3600.0))
     max_frame_failures: int = field(metadata=bounds(1, 100000))
     gaze_dwell: float = field(metadata=bounds(0.1, 30.0))
+    lookout_std: float = field(metadata=bounds(0.001, 10.0))
+    lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     stop_timeout: float = field(metadata=bounds(0.0, 60.0))
 

@@ -29,7 +29,15 @@ them in order: the estimate of the odometry frame becomes the same estimate in W
 Per ``Tick``: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
-and the next yaw of the landmark scan. Whatever the phase, a walk command that approaches the
+and the next yaw of the landmark scan.
+Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
+last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (slot = floor(t /
+gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` from the current pose
+over the head's range (the smallest predicted fix std; the next landmark-scan yaw when no direction
+predicts a fix), clamped to the head limits; even dwells and any tick with sigma_p <= lookout_std
+follow the object. The decision's reason then says ``landmark lookout``. No keyframe is taken while
+looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
+object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
 last image put the object nearer than ``mission.min_image_distance``.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
@@ -43,7 +51,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, Iterator, List, Optional, Tuple, Type
 
 import cv2
@@ -54,7 +62,7 @@ from agent.clearance import image_distance
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
 from agent.head_servo import ObjectHeight, head_target
-from agent.localization import RobotLocalizer
+from agent.localization import RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
@@ -139,6 +147,10 @@ class Pilot:
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._near: Optional[Tuple[float, float]] = None  # (image distance, bearing in the robot frame) at the last sighting
+        self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
+        self._lookout: Optional[Tuple[int, Tuple[float, float]]] = None  # (dwell slot, head target) while looking away
+        self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
+        self._t_back: Optional[float] = None  # when the head was last sent back to the object after a lookout
         self._handlers: Dict[Type, Callable[..., Step]] = {
             StateReceived: self._on_state, FrameReceived: self._on_frame, Tick: self._on_tick, Replan: self._on_replan,
             BridgeLost: self._on_bridge_lost, Interrupted: self._on_interrupt,
@@ -181,13 +193,20 @@ class Pilot:
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
-            head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture,
-                               self.height.aim)
-            decision = Decision(decision.phase, walk=self.command, head=head)
+            head = self._landmark_lookout(t)
+            if head is None:
+                head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera,
+                                   head_at_capture, self.height.aim)
+                self._object_gaze = head
+                decision = Decision(decision.phase, walk=self.command, head=head)
+            else:
+                decision = Decision(decision.phase, walk=self.command, head=head, reason=(
+                    f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm "
+                    f"> {self.config.mission.lookout_std * 100:.1f} cm"))
         elif decision.phase is Phase.LOCALIZE:
             decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
         if decision.walk is not None and not decision.stop:
-            decision = Decision(decision.phase, walk=self._clear(decision.walk), head=decision.head)
+            decision = replace(decision, walk=self._clear(decision.walk))
         record = DecisionRecord(t, decision.phase.value, decision.walk, decision.head, decision.stop,
                                 decision.outcome.value if decision.outcome else None, decision.reason)
         return Step([record], decision=decision)
@@ -233,7 +252,7 @@ class Pilot:
         if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
-            if self.anchored:  # top/bottom-cut views still carve (the border is not an object edge)
+            if self.anchored and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image)
         if self.anchored:
@@ -308,6 +327,33 @@ class Pilot:
             return head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture)
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
+
+    def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
+        """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""
+        p = self.config.mission
+        pose = self.localizer.pose
+        slot = int(t // p.gaze_dwell)
+        if pose is None or not self.localizer.position_std() > p.lookout_std or slot % 2 == 0:
+            if self._lookout is not None:
+                self._lookout, self._t_back = None, t
+            return None
+        if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
+            view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, self._directions)
+            yaw, pitch = (view.yaw, view.pitch) if view else (p.search_head_yaws[(slot // 2) % len(p.search_head_yaws)], p.init_pitch)
+            self._lookout = (slot, self.robot.head.clamp(yaw, pitch))
+        return self._lookout[1]
+
+    def _gaze_on_object(self, t: float, head: Tuple[float, float]) -> bool:
+        """May a frame captured with this head be a keyframe: not looking away, and back on the object since."""
+        if self._lookout is not None:
+            return False
+        if self._t_back is None:
+            return True
+        target, p = self._object_gaze, self.config.mission
+        if t - self._t_back >= p.lookout_settle or (
+                target is not None and max(abs(head[0] - target[0]), abs(head[1] - target[1])) <= p.head_tolerance):
+            self._t_back = None
+        return self._t_back is None
 
     def _clear(self, walk: Tuple[float, float, float]) -> Tuple[float, float, float]:
         """The walk command, cut to its turn when it approaches an object the image shows too near."""

@@ -1,0 +1,126 @@
+"""Active localization in ACTIVE (station.pilot): an uncertain pose sends the head, every other
+dwell, towards the best predicted landmark view, never takes a keyframe meanwhile, and a fix brings
+it back to the object. The pilot is fed real events; only the localizer's measurement is stubbed
+(a fix when the test says so, else the real detector on a blank frame: no landmarks)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from agent.head_servo import head_target
+from agent.localization import PoseFix, head_directions
+from agent.mission import Phase
+from nao_core.protocol import Frame, FrameMeta, Info
+from nao_core.robot_model import load_robot_model
+from station.config import load_station_config
+from station.events import FrameReceived, StateReceived, Tick
+from station.pilot import Pilot
+
+MODEL = load_robot_model()
+CONFIG = load_station_config()
+INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
+            fps=15.0, state_rate_hz=20.0, deadman_s=0.3)
+W, H = INFO.intrinsics.width, INFO.intrinsics.height
+BLANK = cv2.imencode(".jpg", np.full((H, W, 3), 128, np.uint8))[1].tobytes()  # no landmark, no object
+START = (-0.7, 0.0, 0.0)  # inside the map's landmark ring (config/landmarks), facing the object at the origin
+DWELL = CONFIG.mission.gaze_dwell
+
+
+def state(stamp: float, odom) -> SimpleNamespace:
+    """The fields of a ``State`` the pilot reads (the bridge's health fields are not the pilot's)."""
+    return SimpleNamespace(stamp=stamp, odom=tuple(odom), head_yaw=0.0, head_pitch=CONFIG.mission.init_pitch, walking=True,
+                           fallen=False)
+
+
+def frame(seq: int, stamp: float, odom, head=(0.0, 0.2)) -> Frame:
+    meta = FrameMeta(seq=seq, stamp=stamp, width=W, height=H, encoding="jpeg", head_yaw=head[0], head_pitch=head[1],
+                     T_BC=tuple(MODEL.camera_in_robot(*head).ravel()), odom=tuple(odom), resolution="qvga")
+    return Frame(meta, b"", BLANK)
+
+
+class Fixes:
+    """Stands in for ``RobotLocalizer.measure``: a precise fix at the odometry pose when asked, else the real one."""
+
+    def __init__(self, real):
+        self.real, self.pending = real, 0
+
+    def __call__(self, image, T_BC, prior=None, *rest):
+        if self.pending:
+            self.pending -= 1
+            pose = prior if prior is not None else START
+            return PoseFix(tuple(pose), np.diag([1e-4, 1e-4, 1e-4]), 0.1, (0,), 8, np.eye(4))
+        return self.real(image, T_BC, prior, *rest)
+
+
+def active_pilot(monkeypatch):
+    """A pilot in ACTIVE at START with a fresh fix and an object estimate at the origin."""
+    pilot = Pilot(CONFIG, INFO)
+    fixes = Fixes(pilot.localizer.measure)
+    monkeypatch.setattr(pilot.localizer, "measure", fixes)
+    pilot.handle(StateReceived(0.0, state(0.0, (0.0, 0.0, 0.0))))
+    pilot.handle(Tick(0.0))  # INIT
+    pilot.handle(Tick(0.1))  # head centred: SEARCH
+    fixes.pending = 1
+    pilot.handle(FrameReceived(0.1, frame(1, 0.1, (0.0, 0.0, 0.0))))
+    assert pilot.anchored
+    pilot.ekf.initialize((START[0], START[1], 0.0), 0.0, 0.1)
+    pilot.mission.on_frame(0.1, True, True, True)
+    assert pilot.mission.phase is Phase.ACTIVE
+    return pilot, fixes
+
+
+def walk_until_uncertain(pilot, t: float) -> float:
+    """Odometry walking sideways (no fix) until the pose std passes lookout_std; returns the time."""
+    y = 0.0
+    while pilot.localizer.position_std() <= CONFIG.mission.lookout_std:
+        t, y = t + 0.05, y + 0.01
+        assert y < 20.0, "dead reckoning never grew the std past lookout_std"
+        pilot.handle(StateReceived(t, state(t, (0.0, y, 0.0))))
+    pilot.mission.on_frame(t, True, True, True)  # keep the mission's object and fix timers fresh: this test is about the head
+    return t
+
+
+def object_head(pilot):
+    return head_target(pilot.robot, pilot.pose, pilot.ekf.x, CONFIG.perception, aim_height=pilot.height.aim)
+
+
+def test_an_uncertain_pose_alternates_the_head_with_the_best_landmark_view_and_a_fix_brings_it_back(monkeypatch):
+    pilot, fixes = active_pilot(monkeypatch)
+    t = walk_until_uncertain(pilot, 0.2)
+    odom = pilot.localizer._odom
+    pilot.handle(FrameReceived(t, frame(2, t, odom)))  # a frame without landmarks: no fix, the std stays
+    assert pilot.localizer.position_std() > CONFIG.mission.lookout_std
+    best = pilot.localizer.best_landmark_view(pilot.localizer.pose, MODEL.camera_in_robot, head_directions(MODEL.head))
+    assert best is not None  # inside the ring some head direction sees enough markers
+    expected = MODEL.head.clamp(best.yaw, best.pitch)
+
+    even = (math.floor(t / DWELL / 2) + 1) * 2 * DWELL  # start of the next object dwell
+    on_object = pilot.handle(Tick(even + 0.1 * DWELL)).decision
+    away = pilot.handle(Tick(even + 1.1 * DWELL)).decision
+    assert on_object.head == object_head(pilot) and not on_object.reason
+    assert away.head == expected and "landmark lookout" in away.reason
+    # the landmarks lie beside the robot, the object ahead: looking at them is looking away
+    assert max(abs(away.head[0] - on_object.head[0]), abs(away.head[1] - on_object.head[1])) > CONFIG.mission.head_tolerance
+    assert not pilot._gaze_on_object(even + 1.2 * DWELL, away.head)  # no keyframe while looking away
+
+    fixes.pending = 1  # the lookout's frame gives a fix: the std drops below the threshold
+    pilot.handle(FrameReceived(even + 1.2 * DWELL, frame(3, t, odom, head=away.head)))
+    assert pilot.localizer.position_std() <= CONFIG.mission.lookout_std
+    back = pilot.handle(Tick(even + 1.3 * DWELL)).decision  # same odd dwell, but the pose is certain again
+    assert back.head == object_head(pilot) and not back.reason
+    # keyframes resume once a frame shows the head back on the object
+    assert not pilot._gaze_on_object(even + 1.4 * DWELL, away.head)
+    assert pilot._gaze_on_object(even + 1.5 * DWELL, back.head)
+
+
+def test_a_certain_pose_never_looks_away(monkeypatch):
+    pilot, _ = active_pilot(monkeypatch)
+    assert pilot.localizer.position_std() <= CONFIG.mission.lookout_std
+    for k in range(8):  # four full object/landmark cycles
+        pilot.mission.on_frame(0.2 + k * DWELL, True, True, True)  # object and landmarks seen (the mission's timers)
+        decision = pilot.handle(Tick(0.2 + k * DWELL)).decision
+        assert decision.head == object_head(pilot) and not decision.reason
