@@ -13,7 +13,11 @@ from pathlib import Path
 import pytest
 
 MIN_CONTAINMENT = 0.99  # the conservative hull must hold the true object
-MIN_IOU = 0.40  # can, QVGA, default config (floor prior off): measured 0.42; 0.81 with floor_prior (docs/carving.md)
+# With the base in view (issue 13) the excess is the conservative shell (~0.75 voxel + 1 px dilation)
+# and mm pose errors; an unseen skirt around the base (the failure this guards against) costs about
+# half the IoU (0.51) and adds decimetres of width.
+MIN_IOU = 0.75
+MAX_WIDTH_ERROR = 0.03  # m: a 3 cm margin over a 0.11 m can; the skirt made it 0.12 m wider
 
 
 @pytest.mark.slow
@@ -26,3 +30,4 @@ def test_sim_can_mission_model_contains_the_true_object(tmp_path: Path):
     accuracy = result["model"]["accuracy"]
     assert accuracy["containment"] >= MIN_CONTAINMENT, accuracy
     assert accuracy["iou"] >= MIN_IOU, accuracy
+    assert abs(accuracy["width_error"]) <= MAX_WIDTH_ERROR and abs(accuracy["depth_error"]) <= MAX_WIDTH_ERROR, accuracy
