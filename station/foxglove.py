@@ -161,6 +161,21 @@ def _translation(x: float, y: float, z: float) -> np.ndarray:
     return T
 
 
+ESTIMATE_SCHEMA = {
+    "title": "station.Estimate", "type": "object", "additionalProperties": False,
+    "description": "The object estimate (centre x, y and radius r, m) and its standard deviations sqrt(diag P), for plots",
+    "properties": {k: {"type": "number"} for k in ("t", "x", "y", "r", "std_x", "std_y", "std_r")},
+    "required": ["t", "x", "y", "r", "std_x", "std_y", "std_r"],
+}
+
+
+def estimate(t: float, x: Sequence[float], P: np.ndarray) -> dict:
+    """The estimate and its standard deviations as one flat record (``ESTIMATE_SCHEMA``)."""
+    std = np.sqrt(np.maximum(np.diag(np.asarray(P, dtype=float)), 0.0))
+    return {"t": t, "x": float(x[0]), "y": float(x[1]), "r": float(x[2]),
+            "std_x": float(std[0]), "std_y": float(std[1]), "std_r": float(std[2])}
+
+
 def trajectory(t: float, poses: Sequence[Tuple[float, float, float]]) -> PosesInFrame:
     """The robot's localized poses (x, y, theta) so far, in ``world``."""
     return PosesInFrame(timestamp=stamp(t), frame_id=WORLD, poses=[pose(planar_transform(*p)) for p in poses])
@@ -230,3 +245,15 @@ def image_annotations(stamp_s: float, camera: CameraModel, view: FrameView, ray_
         if len(uv):
             label(uv[0], "object (predicted)", _color(1.0, 0.2, 0.8))
     return ImageAnnotations(points=points, circles=circles, texts=texts)
+
+
+def layout_topics(layout: dict) -> set:
+    """Every topic a Foxglove layout names (image, calibration, annotations, 3-D topics, plot paths, log)."""
+    topics = set()
+    for config in layout["configById"].values():
+        image = config.get("imageMode", {})
+        topics |= {image[k] for k in ("imageTopic", "calibrationTopic") if k in image} | set(image.get("annotations", {}))
+        topics |= set(config.get("topics", {}))
+        topics |= {path["value"].split(".", 1)[0] for path in config.get("paths", [])}
+        topics |= {config["topicToRender"]} if "topicToRender" in config else set()
+    return topics

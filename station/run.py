@@ -64,6 +64,7 @@ from station.topics import (
     CMD_HEAD,
     CMD_WALK,
     CONFIG,
+    ESTIMATE,
     ERROR,
     FRAME_IMAGE,
     FRAME_META,
@@ -288,6 +289,7 @@ class ControlLoop:
         """Foxglove views of an agent output (runs inside ``_commit``: writes directly)."""
         if isinstance(record, EkfRecord) and record.x is not None:
             self.log.proto(SCENE_OBJECT, foxglove.object_estimate(t, np.asarray(record.x), np.asarray(record.P)), t)
+            self.log.json(ESTIMATE, foxglove.estimate(t, record.x, record.P), t, foxglove.ESTIMATE_SCHEMA)
         elif isinstance(record, PoseRecord):
             T_WB, T_odom_B = planar_transform(*record.pose), planar_transform(*record.odom)
             T_BC = np.asarray(record.T_BC).reshape(4, 4)

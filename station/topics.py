@@ -27,6 +27,7 @@ KEYFRAME = "/agent/keyframe"
 FRAME_REJECTED = "/agent/frame_rejected"  # a frame a per-frame step raised on (dropped)
 # Foxglove views (config/foxglove/layout.json)
 LOG = "/station/log"  # foxglove.Log: every console line
+ESTIMATE = "/station/estimate"  # the object estimate and its standard deviations, for plots
 ANNOTATIONS = "/nao/camera/annotations"  # foxglove.ImageAnnotations, stamped like the frame
 TRAJECTORY = "/scene/trajectory"  # foxglove.PosesInFrame: the robot's localized poses
 TF = "/tf"
