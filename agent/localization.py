@@ -23,7 +23,9 @@ Landmark points (image u_i <-> world X_i):
 Planar model. The robot stands on the floor: height, roll and pitch come from the kinematics
 (T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
 the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) T_BC with delta a small
-unknown. A point projects as
+unknown, held by a prior of std ``roll_sigma`` while walking and ``roll_sigma_still`` when the
+odometry did not move since the previous reading (standing: no sway; far markers all at one height
+do not tell roll from position, so a loose prior would cost precision for nothing). A point projects as
 
     X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
 
@@ -118,7 +120,8 @@ class LocalizationParams:
     min_points_with_prior: int = field(metadata=bounds(2, 1000))  # ... when the prior associated them (it is the extra constraint)
     max_reprojection_px: float = field(metadata=bounds(0.01, 50.0))  # RMS gate on the final fit, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
-    roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC
+    roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC (walking)
+    roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
     single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
@@ -516,10 +519,12 @@ class RobotLocalizer:
         self.covariance = np.full((3, 3), np.nan)
         self.rejected_jumps = 0
         self.no_fix_reason = ""
+        self._roll_sigma = params.roll_sigma
         self.landmarks_seen = 0  # map markers and landmark-coloured blobs in the last frame (for failure reasons)
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
         self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
+        self._moving = False  # odometry moved at the last reading (a mission starts standing)
 
     def reset(self) -> None:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
@@ -543,6 +548,8 @@ class RobotLocalizer:
         odom = _check_pose(odom, "odom")
         if not math.isfinite(stamp) or stamp < self._stamp:
             return
+        if self._odom is not None:
+            self._moving = bool(np.any(np.abs(relative(self._odom, odom)) > 1e-6))
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
             heading = compose(self._correction, self._odom)[2]
@@ -576,7 +583,7 @@ class RobotLocalizer:
         odom = _check_pose(odom, "odom")
         self.on_odometry(odom, stamp)
         prior = self.pose_at(odom)
-        fix = self.measure(image, T_BC, prior)
+        fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still)
         if fix is None:
             return None
         if prior is not None and not self._accept_jump(prior, fix):
@@ -585,10 +592,15 @@ class RobotLocalizer:
         self._fuse(fix, prior, odom)
         return fix
 
-    def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None) -> Optional[PoseFix]:
-        """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why)."""
+    def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
+                roll_sigma: Optional[float] = None) -> Optional[PoseFix]:
+        """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why).
+
+        ``roll_sigma``: prior std of the torso roll T_BC misses (default ``params.roll_sigma``, walking).
+        """
         self.no_fix_reason = ""
         self.landmarks_seen = 0
+        self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         try:
             return self._measure(image, _check_transform(T_BC), prior)
         except NoFix as reason:
@@ -614,6 +626,7 @@ class RobotLocalizer:
         """The fix from given correspondences (N x 3 world, N x 2 pixels; ``groups``: marker of each
         point, default four points per marker), or None (``no_fix_reason`` says why). For tests and tools."""
         self.no_fix_reason = ""
+        self._roll_sigma = self.params.roll_sigma
         try:
             model = PlanarModel(self.camera, _check_transform(T_BC))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
@@ -678,7 +691,7 @@ class RobotLocalizer:
     # -- markers -------------------------------------------------------------------------------
 
     def _refine(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
-        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self.params.roll_sigma)
+        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self._roll_sigma)
 
     def _fit_markers(self, model: PlanarModel, markers: _Points, prior: Optional[np.ndarray]):
         """(inlier points, p, rms, H): the joint fit of all markers, or the largest consensus (module docstring)."""

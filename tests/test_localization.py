@@ -566,3 +566,23 @@ def test_alternating_gaze_keeps_the_pose_in_a_wall_layout(params, perception, ro
             errors.append(pose_error(localizer.pose, world.truth()["robot_pose"])[0])
     assert len(errors) >= 50
     assert max(errors) <= 2 * params.max_position_std and np.median(errors) <= 0.01
+
+
+def test_roll_is_held_tight_while_standing_and_freed_while_walking(params, perception, robot, room):
+    """Standing (odometry unchanged) the torso-roll unknown is held by ``roll_sigma_still``: the far
+    side of the ring alone (all markers at one height) then fixes the pose as if T_BC were exact;
+    once odometry moves, the looser walking prior applies (the fix's covariance grows)."""
+    world = SimWorld("can", robot, "qvga", seed=1)
+    camera = camera_of(robot, "qvga")
+    truth = (0.68, -1.44, 2.03)  # on the ring, looking across it: markers 2.5-3 m away
+    world.teleport(truth, robot.look_at(truth, (*world.scenario.position, 0.1)))
+    frame = world.render()
+    localizer = RobotLocalizer(params, room, camera, perception)
+    localizer.on_odometry((0.0, 0.0, 0.0), 0.0)
+    still = localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), 1.0)
+    assert still is not None and abs(still.roll) <= 3 * params.roll_sigma_still
+    localizer.reset()
+    localizer.on_odometry((0.01, 0.0, 0.0), 2.0)  # it moved: walking prior
+    walking = localizer.measure(frame.image, frame.T_BC, None, params.roll_sigma)
+    assert walking is None or np.trace(walking.covariance) > np.trace(still.covariance)
+    assert pose_error(still.pose, world.truth()["robot_pose"])[0] < 2 * math.sqrt(np.linalg.eigvalsh(still.covariance[:2, :2])[-1]) + 0.005
