@@ -22,6 +22,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from scipy.spatial import ConvexHull  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from agent.ekf import position_std  # noqa: E402
@@ -77,7 +78,7 @@ def write_report(log_path: Union[str, Path], out_dir: Union[str, Path], mesh=Non
     series = RunSeries.read(log_path)
     if not (series.poses or series.ekf):
         raise LogError(f"{log_path}: no robot pose and no object estimate in the log: nothing to draw")
-    figures = [("trajectory.png", _trajectory), ("cameras.png", lambda s: _cameras(s, mesh)),
+    figures = [("trajectory.png", lambda s: _trajectory(s, mesh)), ("cameras.png", lambda s: _cameras(s, mesh)),
                ("progress.png", _progress)]
     if series.truth:
         figures.append(("errors.png", _errors))
@@ -91,7 +92,8 @@ def write_report(log_path: Union[str, Path], out_dir: Union[str, Path], mesh=Non
     return written
 
 
-def _trajectory(s: RunSeries):
+def _trajectory(s: RunSeries, mesh=None):
+    """The walk, the rays, the filter's estimate and, with ``mesh``, the carved model's footprint and extent."""
     fig, ax = plt.subplots(figsize=(7, 7))
     if s.poses:
         xy = np.array([p["pose"][:2] for p in s.poses])
@@ -114,6 +116,16 @@ def _trajectory(s: RunSeries):
     if s.truth:
         obj = s.truth[-1].object
         ax.add_patch(plt.Circle(tuple(obj.centre), obj.radius, fill=False, color="k", ls="--", lw=1.5, label="object (truth)"))
+    if mesh is not None and len(mesh.faces):
+        xy = mesh.vertices[:, :2]
+        outline = xy[ConvexHull(xy).vertices]
+        ax.fill(*outline.T, color="tab:green", alpha=0.35, label="carved model (footprint)")
+        centre, extent = mesh.vertices.mean(axis=0), np.ptp(mesh.vertices, axis=0)
+        text = f"model: centre ({centre[0]:.3f}, {centre[1]:.3f}) m, extent {extent[0]:.3f} x {extent[1]:.3f} x {extent[2]:.3f} m"
+        if s.ekf:
+            x = s.ekf[-1]["x"]
+            text += f"\nfilter: centre ({x[0]:.3f}, {x[1]:.3f}) m, diameter {2 * x[2]:.3f} m"
+        ax.text(0.02, 0.98, text, transform=ax.transAxes, fontsize=8, va="top", bbox={"fc": "white", "alpha": 0.8})
     region = [p["pose"][:2] for p in s.poses] + [e["x"][:2] for e in s.ekf[-1:]]
     if region:  # the early ellipses are metres wide: frame the walk and the final estimate
         lo, hi = np.min(region, axis=0) - 0.3, np.max(region, axis=0) + 0.3
@@ -123,7 +135,7 @@ def _trajectory(s: RunSeries):
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title("Trajectory, estimate and observation rays")
-    ax.legend(loc="best", fontsize=8)
+    ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
     return fig
 
