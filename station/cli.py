@@ -256,6 +256,8 @@ def start(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     interrupts = Interrupts()
+    console = logs.LogTopicHandler()  # the console from here on goes into the run log too
+    logging.getLogger(logs.LOGGER).addHandler(console)
     live = None
     if args.live is not None:
         from station.live import LiveServer
@@ -275,9 +277,10 @@ def start(args: argparse.Namespace) -> int:
                      info.robot.name, info.resolution, config.mission.max_duration)
             run_log = McapLog(out / "run.mcap", config.station.flush_interval, sinks=[live] if live else [])
             try:
-                with logs.attached(logs.LogTopicHandler(lambda message, t: run_log.proto(LOG, message, t))):
-                    summary = ControlLoop(config, link, info, info_bytes, run_log, interrupts).run()
+                console.bind(lambda message, t: run_log.proto(LOG, message, t))
+                summary = ControlLoop(config, link, info, info_bytes, run_log, interrupts).run()
             finally:
+                console.bind(lambda message, t: None)  # the outcome lines come after the log is closed
                 run_log.close()
             if died:
                 raise BridgeFailed(f"the bridge exited with code {died[0]} during the mission (its log: {bridge.log_path})",
@@ -290,6 +293,7 @@ def start(args: argparse.Namespace) -> int:
         code = _outputs(summary, out, resolution)
         return EXIT_CONFIG if code != 0 else code
     finally:
+        logging.getLogger(logs.LOGGER).removeHandler(console)
         if live is not None:
             live.close()
     return _outputs(summary, out, resolution)

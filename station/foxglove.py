@@ -150,6 +150,8 @@ def frusta(t: float, camera: CameraModel, poses_WC: Iterable[np.ndarray], depth:
 
 
 def model(t: float, glb: bytes) -> SceneUpdate:
+    """The carved model at the world origin: ``glb`` is y up (glTF), which Foxglove's 3-D panel turns
+    z up, so the identity pose shows it upright in ``world``."""
     primitive = ModelPrimitive(pose=pose(np.eye(4)), scale=Vector3(x=1, y=1, z=1), color=_color(0.8, 0.8, 0.8),
                                override_color=False, media_type="model/gltf-binary", data=glb)
     return SceneUpdate(entities=[_entity(t, "model", models=[primitive])])

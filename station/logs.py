@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from typing import Callable, Optional
+from typing import Callable, List, Optional, Tuple
 
 from foxglove_schemas_protobuf.Log_pb2 import Log
 
@@ -60,13 +60,24 @@ def foxglove_log(record: logging.LogRecord) -> Log:
 
 
 class LogTopicHandler(logging.Handler):
-    """Forwards the station's log records to ``write(message, t)`` (the run log's /station/log)."""
+    """Forwards the station's log records to ``write(message, t)`` (the run log's /station/log);
+    records from before :meth:`bind` (the log not open yet) are kept and written at bind time."""
 
-    def __init__(self, write: Callable[[Log, float], None], level: int = logging.INFO):
+    def __init__(self, write: Optional[Callable[[Log, float], None]] = None, level: int = logging.INFO):
         super().__init__(level)
+        self._write = write
+        self._early: List[Tuple[Log, float]] = []
+
+    def bind(self, write: Callable[[Log, float], None]) -> None:
+        early, self._early = self._early, []
+        for message, t in early:
+            write(message, t)
         self._write = write
 
     def emit(self, record: logging.LogRecord) -> None:
+        if self._write is None:
+            self._early.append((foxglove_log(record), record.created))
+            return
         try:
             self._write(foxglove_log(record), record.created)
         except Exception:  # noqa: BLE001 - a closed log must never break the console

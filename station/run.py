@@ -33,6 +33,7 @@ from typing import Any, Callable, List, Optional, Tuple
 
 import numpy as np
 
+from agent.mesh import Z_UP_TO_Y_UP
 from agent.mission import Outcome, Phase
 from nao_core.geometry import invert, planar_transform
 from nao_core.protocol import (
@@ -333,4 +334,7 @@ class ControlLoop:
 
 
 def _glb(carver) -> bytes:
-    return carver.to_mesh().export(file_type="glb")
+    """The model as GLB, y up like the model.glb file (glTF's convention: Foxglove turns it z up)."""
+    mesh = carver.to_mesh()
+    mesh.apply_transform(Z_UP_TO_Y_UP)
+    return mesh.export(file_type="glb")

@@ -4,6 +4,7 @@ a bridge the station started that exits ends the command with its last log lines
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -109,3 +110,25 @@ def test_quiet_and_verbose(tmp_path):
     assert sorted(p.read_bytes() for p in views.iterdir()) == [b"jpeg0", b"jpeg2", b"jpeg4"]  # one per 2 s of log time
     verbose = station("capture", "-v", "--log", str(log), "-o", str(tmp_path / "v"), "--count", "2")
     assert "saved frame_0002.jpg" in verbose.stderr and "capture: 2 frames" in verbose.stderr
+
+
+@pytest.mark.slow
+def test_mission_log_holds_every_layout_topic_and_the_console(tmp_path):
+    """A full simulated mission: the Foxglove layout names only topics its log contains, the console
+    lines are in it as foxglove.Log, and every frame's pose has its image annotations."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    from station import foxglove
+    from station.mcap_log import read_log
+
+    result = subprocess.run([sys.executable, "-m", "station.cli", "start", "--robot", "sim", "--out", str(tmp_path)],
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode in (0, 1, 3), result.stderr
+    layout = json.loads((Path(__file__).resolve().parent.parent / "config" / "foxglove" / "layout.json").read_text())
+    messages = list(read_log(tmp_path / "run.mcap"))
+    topics = {m.topic for m in messages}
+    assert foxglove.layout_topics(layout) <= topics, foxglove.layout_topics(layout) - topics
+    console = [m.proto(Log).message for m in messages if m.topic == "/station/log"]
+    assert "phase active" in console and any(line.startswith("mission starts") or "mission starts" in line for line in console)
+    count = {t: sum(m.topic == t for m in messages) for t in ("/agent/pose", "/nao/camera/annotations", "/scene/trajectory")}
+    assert count["/agent/pose"] == count["/nao/camera/annotations"] == count["/scene/trajectory"] > 0

@@ -182,3 +182,20 @@ def test_trajectory_is_poses_in_world():
     assert message.frame_id == "world" and len(message.poses) == 2
     p = message.poses[1]
     assert (p.position.x, p.position.y) == (1.0, 2.0) and p.orientation.z == pytest.approx(math.sqrt(0.5))
+
+
+def test_scene_model_is_y_up_like_gltf():
+    """A tall box (z up in the world) becomes a GLB whose up axis is y: Foxglove shows it upright."""
+    import io
+
+    import trimesh
+
+    from station.run import _glb
+
+    class Carver:
+        def to_mesh(self):
+            return trimesh.creation.box(extents=(0.1, 0.1, 0.3))
+
+    glb = foxglove.model(0.0, _glb(Carver())).entities[0].models[0].data
+    extents = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh").extents
+    assert extents[1] == pytest.approx(0.3) and extents[2] == pytest.approx(0.1)
