@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import logging
 import statistics
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,10 +130,9 @@ def run(args: argparse.Namespace) -> int:
         print(checks[-1].line(), flush=True)
         if not checks[-1].ok:
             return 2
-    out = Path(".station-doctor")
-    out.mkdir(exist_ok=True)
     try:
-        with connected(args, config, out, config.station.bridge_timeout) as (link, info, _, _bridge):
+        with tempfile.TemporaryDirectory(prefix="station-doctor-") as out, \
+                connected(args, config, Path(out), config.station.bridge_timeout) as (link, info, _, _bridge):
             checks.append(Check("bridge", True, f"{info.backend} bridge {info.bridge_version}, {info.robot.name}, "
                                 f"{info.resolution}, deadman {info.deadman_s:g} s"))
             print(checks[-1].line(), flush=True)

@@ -132,3 +132,24 @@ def test_mission_log_holds_every_layout_topic_and_the_console(tmp_path):
     assert "phase active" in console and any(line.startswith("mission starts") or "mission starts" in line for line in console)
     count = {t: sum(m.topic == t for m in messages) for t in ("/agent/pose", "/nao/camera/annotations", "/scene/trajectory")}
     assert count["/agent/pose"] == count["/nao/camera/annotations"] == count["/scene/trajectory"] > 0
+
+
+def test_doctor_on_the_simulated_nao(tmp_path):
+    """Every check prints one PASS/FAIL line; the simulated NAO's bridge, camera, clock, battery,
+    posture and watchdog pass (the landmark line depends on where the robot starts)."""
+    result = subprocess.run([sys.executable, "-m", "station.cli", "doctor", "--robot", "sim", "--seconds", "2"],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    lines = {line.split()[1].rstrip(":"): line.split()[0] for line in result.stdout.splitlines() if line[:4] in ("PASS", "FAIL")}
+    for name in ("bridge", "camera", "clock", "battery", "fallen", "watchdog"):
+        assert lines.get(name) == "PASS", result.stdout
+    assert "landmarks" in lines and "Traceback" not in result.stderr
+    assert result.returncode == (0 if lines["landmarks"] == "PASS" else 1)
+
+
+def test_capture_from_the_simulated_nao(tmp_path):
+    import cv2
+
+    result = station("capture", "--robot", "sim", "-o", str(tmp_path / "shots"), "--count", "2", "--every", "0.2")
+    assert result.returncode == 0, result.stderr
+    shots = sorted((tmp_path / "shots").glob("frame_*.jpg"))
+    assert len(shots) == 2 and all(cv2.imread(str(p)).shape == (240, 320, 3) for p in shots)  # qvga, config/station.yaml
