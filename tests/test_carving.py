@@ -312,7 +312,7 @@ def test_resolution_in_cells():
 
 
 def test_config_is_the_exact_carver_plus_the_documented_mission_settings():
-    mission = dataclasses.replace(CarvingParams(), tolerance=1, dilation=1, margin=0.09)
+    mission = dataclasses.replace(CarvingParams(), tolerance=1, dilation=1, margin=0.09, floor_prior=True)
     assert load_carving_params() == mission
     assert dataclasses.replace(CarvingParams(), tolerance=2).tolerance == 2
 
