@@ -46,3 +46,17 @@ def test_bad_override_is_named(tmp_path, text, match):
     override.write_text(text)
     with pytest.raises(ConfigError, match=match):
         load_station_config([override])
+
+
+def test_provenance_names_the_file_that_set_each_key(tmp_path):
+    from station.config import provenance
+
+    first, second = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    first.write_text("mission:\n  max_duration: 42\nstation:\n  port: 7500\n")
+    second.write_text("station:\n  port: 7600\n")
+    table = provenance([first, second])
+    assert table["mission.max_duration"] == (42.0, str(first))
+    assert table["station.port"] == (7600, str(second))  # the later file wins
+    assert table["station.flush_interval"][1] == str(CONFIG_DIR / "station.yaml")
+    config = load_station_config([first, second])
+    assert {k.split(".")[0] for k in table} == set(SECTIONS) and table["ekf." + next(iter(vars(config.ekf)))][1] != "default"
