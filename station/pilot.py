@@ -23,7 +23,7 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
 
 Re-anchoring: before the first fix the filter runs in the odometry frame O and its measurements
 are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each kept measurement
-is moved into W (cam_xy <- T_WO cam_xy, psi and phi += theta_WO) and the filter is rebuilt from
+is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, is unchanged) and the filter is rebuilt from
 them in order: the estimate of the odometry frame becomes the same estimate in W.
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the
@@ -289,7 +289,7 @@ class Pilot:
         self._last_capture = None
         for stamp, (cx, cy, psi), phi, delta in kept:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, wrap_angle(phi + theta), delta)
+            self._observe(stamp, cam, phi, delta)  # phi is measured from psi: a rigid move leaves it
 
     def _ekf_record(self, t: float) -> EkfRecord:
         x, P = self.ekf.x, self.ekf.P

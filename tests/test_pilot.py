@@ -14,8 +14,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agent.mission import Outcome, Phase
+from nao_core.geometry import compose, relative, wrap_angle
 from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, encode
 from nao_core.robot_model import load_robot_model
+from nao_sim.world import SimWorld
 from station.config import load_station_config
 from station.events import FrameReceived, Replan, Tick
 from station.mcap_log import McapLog, read_log
@@ -169,3 +171,44 @@ def test_a_final_carve_that_raises_still_writes_the_result(tmp_path, monkeypatch
     result = json.loads(write_result(build_result(summary, path, {}, "qvga"), tmp_path / "result.json").read_text())
     assert result["outcome"] == "interrupted" and result["carving_error"] == summary.carving_error
     assert len(list(read_log(path, topics={CMD_WALK}))) >= 1 and control.pilot.mission.phase is Phase.FINISHED
+
+
+def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypatch):
+    """Landmark fixes withheld for the first frames while the robot turns on odometry: the object is
+    tracked in the odometry frame O, then moved into W at the first (real) fix. Its estimate must land
+    on the simulator's object within the filter's 3 sigma plus what the re-anchoring itself can be off:
+    the mapped camera position error and the heading error carried out to the object's distance. Turning
+    in place leaves the range weak (large std along the line of sight), the bearing sharp: the test is
+    the Mahalanobis distance, which a wrongly rotated estimate fails across the line of sight."""
+    now = [0.0]
+    world = SimWorld("can", MODEL, "qvga", seed=1, clock=lambda: now[0])  # odometry frame turned ~2 rad from W
+    world.teleport(world.start_pose, head=(0.0, CONFIG.mission.init_pitch))
+    pilot = Pilot(CONFIG, INFO)
+    real, withheld = pilot.localizer.measure, [8]
+
+    def late(*args):
+        if withheld[0]:
+            withheld[0] -= 1
+            return None
+        return real(*args)
+
+    monkeypatch.setattr(pilot.localizer, "measure", late)
+    world.walk(0.0, 0.0, 0.25)  # turning in place: the kept measurements come from different odometry poses
+    seen = []  # (odometry, true pose) of the frames at capture
+    while not pilot.anchored:
+        now[0] += 0.15
+        shot = world.render()
+        seen.append((shot.odom, world.true_pose()))
+        pilot.handle(FrameReceived(now[0], frame(len(seen), jpeg(shot.image), shot.T_BC.ravel(), shot.odom, shot.stamp)))
+        assert len(seen) <= withheld[0] + 10, "no landmark fix after the withheld frames"
+    assert len(seen) > 3 and pilot.ekf.initialized and pilot.ekf.stats.accepted >= 2  # kept measurements re-anchored
+    T_WO = compose(pilot.pose, relative(seen[-1][0], (0.0, 0.0, 0.0)))
+    centre = np.asarray(world.truth()["object"]["centre"][:2])
+    mapped = [(compose(T_WO, odom), true) for odom, true in seen]
+    position_error = max(math.hypot(m[0] - t[0], m[1] - t[1]) for m, t in mapped)
+    heading_error = max(abs(wrap_angle(m[2] - t[2])) for m, t in mapped)
+    reach = max(math.hypot(*(centre - t[:2])) for _, t in mapped)  # a heading error moves the object by reach * error
+    slack = position_error + reach * heading_error  # how far the re-anchoring alone may move the object
+    d = pilot.ekf.x[:2] - centre
+    d2 = float(d @ np.linalg.solve(pilot.ekf.P[:2, :2] + slack**2 * np.eye(2), d))
+    assert d2 <= -2.0 * math.log(0.003), (d2, pilot.ekf.x, centre)  # chi-square, 2 dof, 99.7 % (3 sigma)
