@@ -2,7 +2,7 @@
 
 Decision: the angular velocities w = (omega_{t+1}, ..., omega_{t+D}), |omega_k| <= omega_max, walked
 at constant speed v for one period tau each (:mod:`agent.motion`). With ``omnidirectional`` on, w also
-holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO walks sideways). Expected cost (DESIGN.md item 7:
+holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO walks sideways). Expected cost (docs/estimation.md, "Rollout for the planner":
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 

@@ -5,7 +5,7 @@ agent's parameter dataclasses with the robot model defined here). Rules:
 
 * Files are deep-merged left to right: mappings merge key by key, any other value replaces.
 * Every leaf remembers the file it came from, so an error names that file, the key path and what
-  was expected: ``config/agent.yaml: ekf.sigma_phi: expected a number in [0, 0.5], got 'abc'``.
+  was expected: ``config/ekf.yaml: ekf.sigma_phi: expected a number in [0, 0.5], got 'abc'``.
 * Unknown keys, missing keys, wrong types, non-finite numbers and out-of-range values are errors.
 * Ranges are declared on the dataclass field: ``field(metadata=bounds(0.0, 1.0))``.
 

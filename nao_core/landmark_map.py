@@ -1,4 +1,4 @@
-"""The landmark map a user writes for their room (DESIGN.md, config contract).
+"""The landmark map a user writes for their room (contract in docs/frames.md and docs/landmarks.md).
 
 Shared by the simulator (which draws the landmarks) and the localization (which uses them).
 A colour landmark is a disc whose centroid is the point; an ArUco landmark is a vertical square

@@ -85,7 +85,7 @@ def test_planar_pose_roundtrip_and_inverse():
     z_left=st.floats(0.0, 0.3), z_right=st.floats(0.0, 0.3),
 )
 def test_tangent_rays_give_exact_bearing_and_width(ox, oy, r, yaw, pitch, theta, z_left, z_right):
-    """DESIGN.md section 2: the extreme rays of a vertical cylinder give delta and the centre azimuth
+    """docs/estimation.md (tangent-ray measurement): the extreme rays of a vertical cylinder give delta and the centre azimuth
     exactly, whatever the camera pitch and the height at which the extreme pixels lie."""
     cam = distorted_camera()
     T_WC = camera_in_world((0.0, 0.0, theta), ROBOT.camera_in_robot(yaw, pitch))

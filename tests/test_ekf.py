@@ -376,7 +376,7 @@ def test_planner_seeds_that_used_to_diverge_converge(seed, omnidirectional):
 
 
 def test_paper_width_form_misreads_true_widths_as_a_doubled_radius():
-    """DESIGN.md slip 1: atan(r/d) fits the measured full angle only with r about twice too large."""
+    """docs/estimation.md, "The paper's slips": slip 1: atan(r/d) fits the measured full angle only with r about twice too large."""
     paper = dataclasses.replace(PARAMS, width_model="paper_atan")
     truth = np.array([0.0, 0.0, 0.08])
     cams = circling_cameras(truth[:2], 0.6, 72, aim_offset=0.1)

@@ -173,7 +173,7 @@ def test_can_silhouette_matches_per_pixel_ray_casting_even_when_clipped_at_the_n
 
 
 def test_can_tangent_rays_give_true_bearing_and_width():
-    """DESIGN.md point 2 on a rendered can: extreme silhouette pixels back-project to the tangent planes."""
+    """docs/estimation.md (tangent-ray measurement) on a rendered can: extreme silhouette pixels back-project to the tangent planes."""
     world = world_on_orbit("can", "vga", 1.0, 0.7)
     frame = world.render()
     T_WC = np.array(world.truth()["camera"]["T_WC"])
