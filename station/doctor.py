@@ -55,12 +55,16 @@ def naoqi_check(host: str) -> Check:
 
         session = qi.Session()
         session.connect(url)
-        version = session.service("ALSystem").systemVersion()
-        session.close()
-        return Check("NAOqi", True, f"{url}, NAOqi {version}")
     except Exception as exc:  # noqa: BLE001 - libqi raises RuntimeError for every failure
         return Check("NAOqi", False, f"{url}: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}",
                      "is the robot on (chest button), on this network (press the chest button: it says its IP), port 9559 open?")
+    try:
+        version = f"NAOqi {session.service('ALSystem').systemVersion()}"
+    except Exception as exc:  # noqa: BLE001 - a NAOqi without ALSystem (a stand-in): reachable all the same
+        version = f"version unknown ({str(exc).strip().splitlines()[0] if str(exc).strip() else 'no ALSystem'})"
+    finally:
+        session.close()
+    return Check("NAOqi", True, f"{url}, {version}")
 
 
 def watch(link, seconds: float) -> tuple:

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -153,3 +154,33 @@ def test_capture_from_the_simulated_nao(tmp_path):
     assert result.returncode == 0, result.stderr
     shots = sorted((tmp_path / "shots").glob("frame_*.jpg"))
     assert len(shots) == 2 and all(cv2.imread(str(p)).shape == (240, 320, 3) for p in shots)  # qvga, config/station.yaml
+
+
+def test_doctor_through_naoqi_on_the_standin(tmp_path):
+    """`doctor --naoqi`: the libqi check, then a bridge started here against the NAOqi stand-in."""
+    import qi
+
+    from station.launch import free_port
+
+    url = f"tcp://127.0.0.1:{free_port()}"
+    standin = subprocess.Popen([sys.executable, "-m", "nao_sim.standin", "--listen", url, "--resolution", "qvga"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(600):  # readiness: until a libqi session connects
+            try:
+                session = qi.Session()
+                session.connect(url)
+                session.close()
+                break
+            except RuntimeError:
+                assert standin.poll() is None, "the stand-in exited"
+                time.sleep(0.1)
+        result = subprocess.run([sys.executable, "-m", "station.cli", "doctor", "--naoqi", url, "--seconds", "2"],
+                                capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    finally:
+        standin.terminate()
+        standin.wait(10)
+    lines = [line for line in result.stdout.splitlines() if line[:4] in ("PASS", "FAIL")]  # libqi may add its own
+    assert lines[0].startswith(f"PASS  NAOqi: {url}"), result.stdout + result.stderr
+    assert lines[1].startswith("PASS  bridge: naoqi bridge"), result.stdout + result.stderr
+    assert any(line.startswith("PASS  camera rate") for line in lines), result.stdout
