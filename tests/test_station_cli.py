@@ -4,6 +4,7 @@ a bridge the station started that exits ends the command with its last log lines
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 import subprocess
 import sys
@@ -184,3 +185,27 @@ def test_doctor_through_naoqi_on_the_standin(tmp_path):
     assert lines[0].startswith(f"PASS  NAOqi: {url}"), result.stdout + result.stderr
     assert lines[1].startswith("PASS  bridge: naoqi bridge"), result.stdout + result.stderr
     assert any(line.startswith("PASS  camera rate") for line in lines), result.stdout
+
+
+def test_bridge_killed_mid_mission_ends_it_with_exit_2(tmp_path):
+    """The started bridge is killed once the mission runs: the station ends the mission (the robot
+    was stopped by the bridge's death), prints its last log lines and exits 2."""
+    import signal
+
+    station_process = subprocess.Popen([sys.executable, "-m", "station.cli", "start", "--robot", "sim", "--out", str(tmp_path)],
+                                       stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        for line in station_process.stderr:  # readiness: the mission has started
+            if "phase" in line:
+                break
+        children = Path(f"/proc/{station_process.pid}/task/{station_process.pid}/children").read_text().split()
+        assert len(children) == 1  # the bridge
+        os.kill(int(children[0]), signal.SIGKILL)
+        rest = station_process.stderr.read()
+        code = station_process.wait(120)
+    finally:
+        if station_process.poll() is None:
+            station_process.kill()
+    assert code == 2, rest
+    assert "the bridge exited with code -9 during the mission" in rest and "station: error: bridge: " in rest
+    assert json.loads((tmp_path / "result.json").read_text())["outcome"] == "bridge_lost"
