@@ -65,12 +65,19 @@ predicted within ``color_gate`` px (each landmark claimed once). The best consen
 ``min_points`` blobs is refined; it must beat every hypothesis with a different pose (more than
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
-Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); position std
+Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); the torso roll
+|delta| <= ``max_roll_sigmas`` sigma_delta (far markers low in one band let the lateral position,
+the heading and delta trade against each other: a fit that needs a roll far beyond its prior has
+bought its small residuals with a wrong pose, and its covariance, which trusts the prior, hides
+it); position std
 (larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks), or
 ``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
 prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
-rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior (then the prior is
-wrong: re-localize). Every frame without a fix leaves its reason in ``no_fix_reason``.
+rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior and agree with each
+other: each rejected fix's correction C_k = fix_k (+) o_k^-1 lies within the same gate (of R_k +
+R_k-1) of the previous rejected one's (then the prior is wrong: re-localize). Rejected fixes that
+scatter (far, low markers whose lateral offset trades against an unmodelled torso roll) are noise,
+and never overturn a prior they all disagree with. Every frame without a fix leaves its reason in ``no_fix_reason``.
 
 Odometry: the pose is W <- odometry-frame correction C composed with the odometry pose,
 p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |dtheta|) grows
@@ -128,6 +135,7 @@ class LocalizationParams:
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
+    max_roll_sigmas: float = field(metadata=bounds(0.5, 100.0))  # a fit whose torso roll exceeds this many prior std is no fix
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
@@ -518,6 +526,7 @@ class RobotLocalizer:
         self._correction: Optional[Pose] = None  # W <- odometry frame
         self.covariance = np.full((3, 3), np.nan)
         self.rejected_jumps = 0
+        self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
         self._roll_sigma = params.roll_sigma
         self.landmarks_seen = 0  # map markers and landmark-coloured blobs in the last frame (for failure reasons)
@@ -530,7 +539,7 @@ class RobotLocalizer:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
         self._correction = None
         self.covariance = np.full((3, 3), np.nan)
-        self.rejected_jumps = 0
+        self.rejected_jumps, self._rejected = 0, None
 
     @property
     def pose(self) -> Optional[Pose]:
@@ -586,7 +595,7 @@ class RobotLocalizer:
         fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still)
         if fix is None:
             return None
-        if prior is not None and not self._accept_jump(prior, fix):
+        if prior is not None and not self._accept_jump(prior, fix, odom):
             self.no_fix_reason = f"jump of {math.hypot(fix.pose[0] - prior[0], fix.pose[1] - prior[1]):.2f} m from the prior rejected"
             return None
         self._fuse(fix, prior, odom)
@@ -673,6 +682,9 @@ class RobotLocalizer:
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too
             raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
+        if abs(p[3]) > self.params.max_roll_sigmas * self._roll_sigma:
+            raise NoFix(f"torso roll {math.degrees(p[3]):.2f} deg of the fit beyond {self.params.max_roll_sigmas:g} sigma "
+                        f"({math.degrees(self._roll_sigma):.2f} deg): pose traded for roll")
         # per-axis residual variance with 3 degrees of freedom used (delta is held by its prior)
         residual_var = 2.0 * len(points) * rms**2 / max(1, 2 * len(points) - 3)
         covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]
@@ -981,19 +993,25 @@ class RobotLocalizer:
 
     # -- fusion --------------------------------------------------------------------------------
 
-    def _accept_jump(self, prior: Pose, fix: PoseFix) -> bool:
-        diff = _difference(fix.pose, prior)
-        std = np.sqrt(np.diag(self.covariance + fix.covariance))
-        floor = np.array([self.params.jump_floor[0], self.params.jump_floor[0], self.params.jump_floor[1]])
-        if np.all(np.abs(diff) <= self.params.jump_sigmas * std + floor):
-            self.rejected_jumps = 0
+    def _accept_jump(self, prior: Pose, fix: PoseFix, odom: Pose) -> bool:
+        if self._within_gate(_difference(fix.pose, prior), self.covariance + fix.covariance):
+            self.rejected_jumps, self._rejected = 0, None
             return True
-        self.rejected_jumps += 1
+        correction = compose(fix.pose, relative(odom, (0.0, 0.0, 0.0)))
+        agrees = self._rejected is not None and self._within_gate(
+            _difference(correction, self._rejected[0]), self._rejected[1] + fix.covariance)
+        self.rejected_jumps = self.rejected_jumps + 1 if agrees else 1
+        self._rejected = (correction, fix.covariance)
         if self.rejected_jumps >= self.params.max_rejected_jumps:
-            self.rejected_jumps = 0
+            self.rejected_jumps, self._rejected = 0, None
             self._correction = None  # the prior is wrong: restart from this fix
             return True
         return False
+
+    def _within_gate(self, diff: np.ndarray, covariance: np.ndarray) -> bool:
+        std = np.sqrt(np.diag(covariance))
+        floor = np.array([self.params.jump_floor[0], self.params.jump_floor[0], self.params.jump_floor[1]])
+        return bool(np.all(np.abs(diff) <= self.params.jump_sigmas * std + floor))
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):

@@ -18,8 +18,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    the image gives (agent/clearance.py)
     filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
-                   measured and the viewing azimuth a = atan2(C - o) differs from every earlier
-                   keyframe's by >= keyframe_min_angle
+                   measured and agent.keyframes.KeyframePool keeps it: its viewing azimuth
+                   a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle,
+                   or its quality (pose precision x silhouette) doubles every one's near it
 
 Re-anchoring: before the first fix the filter runs in the odometry frame O and its measurements
 are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each kept measurement
@@ -39,7 +40,15 @@ follow the object. The decision's reason then says ``landmark lookout``. No keyf
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
-last image put the object nearer than ``mission.min_image_distance``.
+object is nearer than ``mission.min_image_distance`` to the robot's origin by the image alone.
+The image's surface point (camera C, distance d from agent/clearance.py along the measured
+azimuth a) is kept in the odometry frame O, independent of the landmark pose and the filter::
+
+    q_O = C_O + d (cos a_O, sin a_O),   a_O = a - theta_pose + theta_odom
+    d_R = |q_O - (x, y)_odom|,  b = atan2(q_O - (x, y)_odom) - theta_odom     (latest odometry)
+
+and carried by odometry while the object is out of view (a flat object near the feet leaves the
+bottom of the image before the robot reaches it); the next measured sighting replaces it.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
 ``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
 (goal reached -> ``mission.on_goal``, the next tick stops the robot), else a new plan (its
@@ -62,6 +71,7 @@ from agent.clearance import image_distance
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
 from agent.head_servo import ObjectHeight, head_target
+from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
 from agent.localization import RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
@@ -95,6 +105,7 @@ class KeyframeView:
     x: np.ndarray
     P: np.ndarray
     image: Optional[np.ndarray] = None  # the frame (BGR), for the model's vertex colours
+    quality: float = 1.0  # agent/keyframes.py: pose precision x silhouette quality at capture
 
 
 @dataclass
@@ -121,6 +132,13 @@ def guarded(step: str) -> Iterator[None]:
         raise FrameStepFailed(step, exc) from exc
 
 
+def _surface_point(odom: Pose, T_BC: np.ndarray, distance: float, bearing: float) -> Tuple[float, float]:
+    """q_O: the point ``distance`` from the camera along ``bearing`` (robot frame), in the odometry frame."""
+    T_OC = camera_in_world(tuple(float(v) for v in odom), T_BC)
+    azimuth = float(odom[2]) + bearing
+    return float(T_OC[0, 3] + distance * math.cos(azimuth)), float(T_OC[1, 3] + distance * math.sin(azimuth))
+
+
 def _flat(T: np.ndarray) -> Tuple[float, ...]:
     return tuple(float(v) for v in T.ravel())
 
@@ -143,10 +161,11 @@ class Pilot:
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
         self._last_capture: Optional[float] = None
-        self._keyframe_azimuths: List[float] = []
+        self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
-        self._near: Optional[Tuple[float, float]] = None  # (image distance, bearing in the robot frame) at the last sighting
+        self._near: Optional[Tuple[float, float]] = None  # the surface point q_O the last measured image gave (odometry frame)
+        self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._lookout: Optional[Tuple[int, Tuple[float, float]]] = None  # (dwell slot, head target) while looking away
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
@@ -165,6 +184,7 @@ class Pilot:
     def _on_state(self, event: StateReceived) -> Step:
         state = event.state
         self.localizer.on_odometry(state.odom, state.stamp)
+        self._odom = tuple(float(v) for v in state.odom)
         self.mission.on_state(event.t, state.fallen, state.walking, state.head_yaw, state.head_pitch)
         return Step()
 
@@ -240,7 +260,7 @@ class Pilot:
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
             measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
-            self._sighting = self._near = None
+            self._sighting = None
             if measurement is not None:
                 self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
                 self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
@@ -248,7 +268,7 @@ class Pilot:
                 radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior
                 distance = image_distance(silhouette, measurement.delta, float(radius), self.camera, T_WC)
                 if distance is not None:
-                    self._near = (distance, wrap_angle(measurement.azimuth - self.pose[2]))
+                    self._near = _surface_point(meta.odom, T_BC, distance, measurement.azimuth - self.pose[2])
         if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
@@ -309,12 +329,13 @@ class Pilot:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
-        gap = min((abs(wrap_angle(azimuth - a)) for a in self._keyframe_azimuths), default=math.inf)
-        if gap < self.config.station.keyframe_min_angle:
+        c = self.config.carving
+        quality = pose_quality(self.localizer.covariance, math.hypot(cam[0] - self.ekf.x[0], cam[1] - self.ekf.x[1]),
+                               c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
+        if not self._keyframes.offer(azimuth, quality):
             return
-        self._keyframe_azimuths.append(azimuth)
-        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image)
-        step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted))
+        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality)
+        step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality))
 
     # per tick ---------------------------------------------------------------------------------
 
@@ -356,10 +377,13 @@ class Pilot:
         return self._t_back is None
 
     def _clear(self, walk: Tuple[float, float, float]) -> Tuple[float, float, float]:
-        """The walk command, cut to its turn when it approaches an object the image shows too near."""
-        if self._near is None or self._near[0] >= self.config.mission.min_image_distance:
+        """The walk command, cut to its turn when it approaches the image's surface point, too near (module docstring)."""
+        if self._near is None or self._odom is None:
             return walk
-        bearing = self._near[1]
+        dx, dy = self._near[0] - self._odom[0], self._near[1] - self._odom[1]
+        if math.hypot(dx, dy) >= self.config.mission.min_image_distance:
+            return walk
+        bearing = math.atan2(dy, dx) - self._odom[2]
         if walk[0] * math.cos(bearing) + walk[1] * math.sin(bearing) <= 1e-9:  # not approaching
             return walk
         return (0.0, 0.0, walk[2])

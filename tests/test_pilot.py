@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import queue
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -19,9 +20,10 @@ from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, 
 from nao_core.robot_model import load_robot_model
 from nao_sim.world import SimWorld
 from station.config import load_station_config
-from station.events import FrameReceived, Replan, Tick
+from station.events import FrameReceived, Replan, StateReceived, Tick
 from station.mcap_log import McapLog, read_log
 from station.outputs import OUTPUTS, FrameRejectedRecord
+from station import pilot as pilot_module
 from station.pilot import Pilot
 from station.result import build_result, write_result
 from station.run import ControlLoop
@@ -98,13 +100,31 @@ def test_a_step_that_raises_drops_the_frame_counts_it_and_persistent_failure_end
 def test_walking_towards_an_object_the_image_shows_too_near_is_cut_to_the_turn():
     pilot = Pilot(CONFIG, INFO)
     near = CONFIG.mission.min_image_distance
-    pilot._near = (0.9 * near, 0.0)  # noqa: SLF001 - the last image put the object straight ahead, too near
+    pilot._odom = (1.0, 2.0, math.pi / 2)  # noqa: SLF001 - the robot faces +y of the odometry frame
+    pilot._near = (1.0, 2.0 + 0.9 * near)  # noqa: SLF001 - the image's surface point straight ahead, too near
     assert pilot._clear((0.1, 0.0, 0.3)) == (0.0, 0.0, 0.3)  # noqa: SLF001
+    assert pilot._clear((0.0, -0.1, 0.3)) == (0.0, -0.1, 0.3)  # noqa: SLF001 - sideways (tangential) is kept
     assert pilot._clear((-0.1, 0.0, 0.3)) == (-0.1, 0.0, 0.3)  # noqa: SLF001 - backing away is kept
-    pilot._near = (0.9 * near, math.pi / 2)  # noqa: SLF001 - object on the left: forward is tangential
+    pilot._near = (1.0 - 0.9 * near, 2.0)  # noqa: SLF001 - on the robot's left: forward is tangential, leftwards approaches
     assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
-    pilot._near = (1.1 * near, 0.0)  # noqa: SLF001
+    assert pilot._clear((0.0, 0.1, 0.3)) == (0.0, 0.0, 0.3)  # noqa: SLF001
+    pilot._near = (1.0, 2.0 + 1.1 * near)  # noqa: SLF001
     assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
+
+
+def test_the_images_surface_point_is_carried_by_odometry_once_out_of_view():
+    """A flat object leaves the bottom of the image before the robot reaches it: the last measured
+    surface point, kept in the odometry frame, still stops the walk once odometry brings it near."""
+    pilot = Pilot(CONFIG, INFO)
+    near = CONFIG.mission.min_image_distance
+    T_BC = np.eye(4)
+    T_BC[0, 3] = 0.05  # camera 5 cm ahead of the robot origin
+    pilot._near = pilot_module._surface_point((0.0, 0.0, 0.0), T_BC, near + 0.2, 0.0)  # noqa: SLF001 - seen 0.25 m beyond the limit
+    assert pilot._near == pytest.approx((near + 0.25, 0.0))  # noqa: SLF001
+    pilot.handle(StateReceived(1.0, SimpleNamespace(stamp=1.0, odom=(0.1, 0.0, 0.0), head_yaw=0.0, head_pitch=0.2, walking=True, fallen=False)))
+    assert pilot._clear((0.1, 0.0, 0.0)) == (0.1, 0.0, 0.0)  # noqa: SLF001 - still 0.15 m beyond the limit
+    pilot.handle(StateReceived(2.0, SimpleNamespace(stamp=2.0, odom=(0.3, 0.0, 0.0), head_yaw=0.0, head_pitch=0.2, walking=True, fallen=False)))  # walked on with the object out of view
+    assert pilot._clear((0.1, 0.0, 0.0)) == (0.0, 0.0, 0.0)  # noqa: SLF001
 
 
 class FakeLink:
