@@ -46,6 +46,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
         raise LogError(f"{log_path}: no keyframes or no object estimate: nothing to carve")
     views: List[View] = []
     images: List[np.ndarray] = []
+    qualities: List[float] = []
     seq: Optional[int] = None
     with tqdm(total=len(wanted), desc="silhouettes", unit="view", disable=not progress) as bar:
         for message in read_log(log_path, topics={FRAME_META, FRAME_IMAGE}):
@@ -60,6 +61,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
                 if silhouette is not None:
                     views.append((silhouette.mask, camera, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
                     images.append(image)
+                    qualities.append(float(keyframe.get("quality", 1.0)))  # logs before agent/keyframes.py: all alike
                 bar.update()
     x, P = np.asarray(estimate["x"]), np.asarray(estimate["P"])
-    return carve_views(views, x, P, params, pitch=resolution, images=images)
+    return carve_views(views, x, P, params, pitch=resolution, images=images, qualities=qualities)

@@ -5,8 +5,9 @@ keyframe whose estimate is certain enough (largest centre std <= ``max_position_
 volume around that estimate (:func:`agent.carving.volume_bounds`, which widens it by
 ``sigma_scale`` standard deviations), carves the keyframes kept so far and then each one as it
 comes: the live hull, for progress and the log. ``finish`` drains the queue and carves the final
-model from all keyframes in a volume around the *final* estimate (the grid does not depend on the
-order of views, so this equals ``station carve`` on the log with the same parameters); an estimate
+model in a volume around the *final* estimate from at most ``keyframes`` of them, chosen around that
+estimate for azimuth spread and quality (:func:`agent.keyframes.select_keyframes`; the grid does not
+depend on the order of views, so this equals ``station carve`` on the log with the same parameters); an estimate
 still too uncertain gets no model (a box metres wide would take minutes and carve nothing useful),
 and ``error`` says why.
 """
@@ -30,18 +31,27 @@ from agent.carving import (
     volume_bounds,
 )
 from agent.ekf import position_std
+from agent.keyframes import select_keyframes, view_azimuth
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
 
 
 def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], params: CarvingParams,
-                pitch: Optional[float] = None, images: Sequence[Optional[np.ndarray]] = ()) -> VoxelCarver:
-    """The final model: all views carved in the volume around the estimate (x, P).
+                pitch: Optional[float] = None, images: Sequence[Optional[np.ndarray]] = (),
+                qualities: Sequence[float] = ()) -> VoxelCarver:
+    """The final model: the chosen views carved in the volume around the estimate (x, P).
 
-    Raises ValueError when the estimate is still too uncertain for the volume to fit
-    ``max_voxels`` (a box metres wide would take minutes and carve nothing useful). ``images`` (BGR,
-    one per view or None) colour the model's mesh.
+    The views are chosen by :func:`agent.keyframes.select_keyframes` from their azimuths around x and
+    their ``qualities`` (one per view, agent/keyframes.py; all 1 when not given). Raises ValueError when
+    the estimate is still too uncertain for the volume to fit ``max_voxels`` (a box metres wide would
+    take minutes and carve nothing useful). ``images`` (BGR, one per view or None) colour the model's mesh.
     """
+    if qualities and len(qualities) != len(views):
+        raise ValueError(f"qualities: {len(qualities)} given for {len(views)} views")
+    chosen = select_keyframes([view_azimuth(T, x[:2]) for _, _, T in views], list(qualities) or [1.0] * len(views),
+                              params.keyframes, params.keyframe_gap)
+    views = [views[i] for i in chosen]
+    images = [images[i] for i in chosen] if images else ()
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
     views = refine_poses(views, lo, hi, params, estimate_footprint(lo, hi))
     return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
@@ -55,16 +65,17 @@ class CarvingWorker:
         self.camera = camera
         self.views: List[View] = []
         self.images: List[Optional[np.ndarray]] = []  # the keyframes' BGR images, for the mesh's colours
+        self.qualities: List[float] = []  # agent/keyframes.py, for the final choice of views
         self.live: Optional[VoxelCarver] = None
         self.error: Optional[str] = None
         self._on_progress = on_progress
-        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray]]]]" = queue.Queue()
+        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], float]]]" = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="carving", daemon=True)
         self._thread.start()
 
     def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray,
-               image: Optional[np.ndarray] = None) -> None:
-        self._queue.put((mask, T_WC, x.copy(), P.copy(), image))
+               image: Optional[np.ndarray] = None, quality: float = 1.0) -> None:
+        self._queue.put((mask, T_WC, x.copy(), P.copy(), image, quality))
 
     def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
         """Stop the worker and carve the final model (None without keyframes or an estimate, or when the
@@ -78,7 +89,8 @@ class CarvingWorker:
             self.error = f"no final model: centre std {std:.3f} m > {self.max_position_std:g} m"
             return None
         try:
-            return carve_views(self.views, x, P, self.params, images=self.images if any(i is not None for i in self.images) else ())
+            return carve_views(self.views, x, P, self.params, images=self.images if any(i is not None for i in self.images) else (),
+                               qualities=self.qualities)
         except ValueError as exc:  # e.g. the estimate is still too uncertain for a bounded volume
             self.error = f"final carving failed: {exc}"
             return None
@@ -88,10 +100,11 @@ class CarvingWorker:
             item = self._queue.get()
             if item is None:
                 return
-            mask, T_WC, x, P, image = item
+            mask, T_WC, x, P, image, quality = item
             view = (mask, self.camera, T_WC)
             self.views.append(view)
             self.images.append(image)
+            self.qualities.append(quality)
             if self.error is not None:
                 continue
             try:

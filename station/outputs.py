@@ -123,7 +123,7 @@ class PlanRecord(Record):
 
 @dataclass(frozen=True)
 class KeyframeRecord(Record):
-    """A carving keyframe: frame seq, viewing azimuth, T_WC, the predicted pixel that picked the blob."""
+    """A carving keyframe: frame seq, viewing azimuth, T_WC, the predicted pixel that picked the blob, its quality (agent/keyframes.py)."""
 
     TOPIC: ClassVar[str] = KEYFRAME
     NAME: ClassVar[str] = "agent.Keyframe"
@@ -132,6 +132,7 @@ class KeyframeRecord(Record):
     azimuth: float
     T_WC: Matrix16
     predicted_uv: Optional[Tuple[float, float]]
+    quality: float
 
 
 @dataclass(frozen=True)

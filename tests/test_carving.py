@@ -38,6 +38,9 @@ from tests.carving_scenes import (
 )
 
 PITCH = 0.002
+# The exact carver: the configured one without its allowances for pose error (k = 0, no dilation)
+# and without the floor prior, so hulls compare with the analytic visual hulls.
+EXACT = dataclasses.replace(load_carving_params(), tolerance=0, dilation=0, floor_prior=False)
 CAMERA = CameraModel.from_fov(640, 480, math.radians(60.0))
 from tests.conftest import MIDDLEBURY_TEMPLE as TEMPLE  # ../shared from the repository root
 
@@ -94,20 +97,20 @@ def compare_with_truth(shape, views, carver: VoxelCarver) -> Tuple[float, np.nda
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
 def test_carve_contains_shape_and_matches_analytic_hull(scenes, name):
-    assert compare_with_truth(SHAPES[name], scenes[name], carve(scenes[name], LO, HI, PITCH))[0] >= 0.97
+    assert compare_with_truth(SHAPES[name], scenes[name], carve(scenes[name], LO, HI, PITCH, EXACT))[0] >= 0.97
 
 
 def test_coarse_to_fine_equals_testing_every_voxel(scenes):
     views = scenes["cylinder"][:6]
-    octree = carve(views, LO, HI, 0.004, CarvingParams(octree_levels=5))
-    dense = carve(views, LO, HI, 0.004, CarvingParams(octree_levels=0))
+    octree = carve(views, LO, HI, 0.004, dataclasses.replace(EXACT, octree_levels=5))
+    dense = carve(views, LO, HI, 0.004, dataclasses.replace(EXACT, octree_levels=0))
     assert octree.occupancy.any() and np.array_equal(octree.occupancy, dense.occupancy)
 
 
 @pytest.mark.parametrize("tolerance", [0, 1])
 def test_live_and_batch_in_any_order_give_identical_grids(scenes, tolerance):
     views = scenes["box"]
-    params = CarvingParams(tolerance=tolerance)
+    params = dataclasses.replace(EXACT, tolerance=tolerance)
     live = VoxelCarver(LO, HI, 0.003, params)
     removed = [live.add_view(*view) for view in views]
     order = np.random.default_rng(7).permutation(len(views))
@@ -120,7 +123,7 @@ def test_thin_pole_survives_where_a_centre_pixel_test_loses_it():
     pole = Cylinder(0.0403, -0.0211, 0.0015, 0.0, 0.25)  # 3 mm diameter
     lo, hi = np.array([0.0, -0.06, 0.0]), np.array([0.08, 0.02, 0.26])
     views = views_of(pole, lo=lo, hi=hi)
-    carver = carve(views, lo, hi, PITCH)
+    carver = carve(views, lo, hi, PITCH, EXACT)
     centres = voxel_centres(carver)
     on_axis = np.hypot(centres[:, 0] - pole.x, centres[:, 1] - pole.y) <= PITCH * math.sqrt(0.5)
     on_axis &= centres[:, 2] < pole.z1
@@ -140,7 +143,7 @@ def test_bitten_silhouette_is_outvoted_with_tolerance_one(scenes):
     views[4] = (bitten, *views[4][1:])
     inside = None
     for tolerance, survives in ((0, False), (1, True)):
-        carver = carve(views, LO, HI, 0.003, CarvingParams(tolerance=tolerance))
+        carver = carve(views, LO, HI, 0.003, dataclasses.replace(EXACT, tolerance=tolerance))
         centres = voxel_centres(carver)
         inside = shape.contains(centres) if inside is None else inside
         assert np.all(carver.occupancy.ravel()[inside]) == survives
@@ -149,7 +152,7 @@ def test_bitten_silhouette_is_outvoted_with_tolerance_one(scenes):
 def test_voxels_behind_the_camera_or_outside_the_image_are_kept():
     camera = CameraModel.from_fov(64, 48, math.radians(40.0))
     T_WC = np.eye(4)  # at the origin looking along +z: the volume spans both sides of the camera
-    carver = VoxelCarver((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.05)
+    carver = VoxelCarver((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0.05, EXACT)
     carver.add_view(np.zeros((48, 64), np.uint8), camera, T_WC)
     x, y, z = np.moveaxis(voxel_centres(carver).reshape(*carver.shape, 3), -1, 0)
     occupancy = carver.occupancy
@@ -165,11 +168,11 @@ def test_distorted_camera_carves_as_well_as_the_pinhole():
     camera = CameraModel(K=K, dist=np.array([-0.12, 0.05, 0.001, -0.0005, 0.0]), width=640, height=480)
     shape = SHAPES["cylinder"]
     views = views_of(shape, camera, count=8)
-    assert compare_with_truth(shape, views, carve(views, LO, HI, 0.003))[0] >= 0.95
+    assert compare_with_truth(shape, views, carve(views, LO, HI, 0.003, EXACT))[0] >= 0.95
 
 
 def test_mesh_is_watertight_and_exports(scenes, tmp_path):
-    carver = carve(scenes["box"], LO, HI, 0.004)
+    carver = carve(scenes["box"], LO, HI, 0.004, EXACT)
     mesh = carver.to_mesh()
     assert mesh.is_watertight and mesh.volume > 0
     assert mesh.volume == pytest.approx(carver.metrics().volume, rel=0.05)
@@ -217,7 +220,7 @@ def test_vertex_colours_come_from_the_best_facing_keyframe():
     colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 0]], dtype=np.uint8)  # BGR
     views = [(render_mask(shape, CAMERA, T, (LO, HI)), CAMERA, T) for T in poses]
     images = [np.full((CAMERA.height, CAMERA.width, 3), c, dtype=np.uint8) for c in colours]
-    mesh = carve(views, LO, HI, 0.008, images=images).to_mesh()
+    mesh = carve(views, LO, HI, 0.008, EXACT, images=images).to_mesh()
     rgb = mesh.visual.vertex_colors[:, :3]
     checked = 0
     for T, colour in zip(poses, colours):
@@ -228,7 +231,7 @@ def test_vertex_colours_come_from_the_best_facing_keyframe():
         checked += np.count_nonzero(facing)
     assert checked > 0.1 * len(mesh.vertices)
     with pytest.raises(ValueError, match="image"):
-        VoxelCarver(LO, HI, 0.02).add_view(views[0][0], CAMERA, poses[0], np.zeros((10, 10, 3), np.uint8))
+        VoxelCarver(LO, HI, 0.02, EXACT).add_view(views[0][0], CAMERA, poses[0], np.zeros((10, 10, 3), np.uint8))
 
 
 def test_refinement_undoes_a_rotated_keyframe_pose():
@@ -242,7 +245,7 @@ def test_refinement_undoes_a_rotated_keyframe_pose():
     error = np.eye(4)
     error[:3, :3] = cv2.Rodrigues(np.array([math.atan(-2.0 / fy), math.atan(3.0 / fx), 0.0]))[0]
     views[4] = (mask, camera, T_true @ error)
-    params = CarvingParams(refine_px=4, refine_pitch=0.008)
+    params = dataclasses.replace(EXACT, refine_px=4, refine_pitch=0.008)
     refined = refine_poses(views, LO, HI, params)
     centre = np.array([[*CENTRE, 1.0]]).T
     pixel = lambda T: (camera.K @ (np.linalg.inv(T)[:3] @ centre)).ravel()  # noqa: E731
@@ -250,7 +253,7 @@ def test_refinement_undoes_a_rotated_keyframe_pose():
     assert np.linalg.norm(before[:2] / before[2] - truth[:2] / truth[2]) > 3.0
     assert np.linalg.norm(after[:2] / after[2] - truth[:2] / truth[2]) <= 1.5
     # refine_px 0: poses unchanged
-    np.testing.assert_array_equal(refine_poses(views, LO, HI, CarvingParams())[4][2], views[4][2])
+    np.testing.assert_array_equal(refine_poses(views, LO, HI, EXACT)[4][2], views[4][2])
 
 
 def test_meshes_of_random_grids_are_watertight_where_lewiner_is_not():
@@ -268,13 +271,13 @@ def test_meshes_of_random_grids_are_watertight_where_lewiner_is_not():
 def test_two_separate_objects_give_a_watertight_mesh_of_two_bodies():
     shape = Union((Sphere((-0.08, 0.0, 0.1), 0.05), Box((0.04, -0.04, 0.0), (0.12, 0.04, 0.1))))
     views = views_of(shape, count=8)
-    mesh = carve(views, LO, HI, 0.004).to_mesh()
+    mesh = carve(views, LO, HI, 0.004, EXACT).to_mesh()
     assert mesh.is_watertight and len(mesh.split(only_watertight=True)) == 2
 
 
 def test_npz_round_trip_and_metrics_match_the_analytic_hull(scenes, tmp_path):
     sphere, views = SHAPES["sphere"], scenes["sphere"]
-    carver = carve(views, LO, HI, PITCH)
+    carver = carve(views, LO, HI, PITCH, EXACT)
     occupancy, origin, pitch = load_npz(carver.save_npz(tmp_path / "hull.npz"))
     assert np.array_equal(occupancy, carver.occupancy) and pitch == PITCH
     assert np.allclose(origin, LO + PITCH / 2)
@@ -287,7 +290,7 @@ def test_npz_round_trip_and_metrics_match_the_analytic_hull(scenes, tmp_path):
     assert len(idx) * PITCH**3 <= m.volume <= 1.04 * len(idx) * PITCH**3
     assert np.allclose(m.centroid, carver.origin + PITCH * idx.mean(axis=0), atol=0.001)
     assert np.allclose(m.centroid[:2], sphere.centre[:2], atol=0.001)
-    empty = VoxelCarver(LO, HI, 0.01)
+    empty = VoxelCarver(LO, HI, 0.01, EXACT)
     empty.add_view(np.zeros((480, 640), bool), CAMERA, ring_poses(CENTRE, 1.2, 1, (0.3,))[0])
     assert empty.metrics().volume == 0.0 and empty.metrics().centroid is None
 
@@ -307,18 +310,21 @@ def test_volume_from_estimate_holds_the_object_and_bounds_its_height(scenes):
 
 
 def test_resolution_in_cells():
-    carver = VoxelCarver(LO, HI, params=CarvingParams(cells=88))
+    carver = VoxelCarver(LO, HI, None, dataclasses.replace(EXACT, cells=88))
     assert carver.pitch == pytest.approx(0.005) and carver.shape == (88, 88, 88)
 
 
-def test_config_is_the_exact_carver_plus_the_documented_mission_settings():
-    mission = dataclasses.replace(CarvingParams(), tolerance=1, dilation=1, margin=0.09, floor_prior=True)
-    assert load_carving_params() == mission
-    assert dataclasses.replace(CarvingParams(), tolerance=2).tolerance == 2
+def test_defaults_live_in_the_yaml_only():
+    # CarvingParams carries types and bounds: a field with a code default could disagree with config/carving.yaml.
+    assert all(f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+               for f in dataclasses.fields(CarvingParams))
+    with pytest.raises(TypeError):
+        CarvingParams()  # type: ignore[call-arg]
+    assert dataclasses.replace(EXACT, tolerance=2).tolerance == 2
 
 
 def test_bad_views_are_rejected_with_a_clear_error():
-    carver = VoxelCarver(LO, HI, 0.01)
+    carver = VoxelCarver(LO, HI, 0.01, EXACT)
     mask = np.zeros((480, 640), np.uint8)
     pose = ring_poses(CENTRE, 1.2, 1, (0.3,))[0]
     nan_pose = pose.copy()
@@ -341,9 +347,9 @@ def test_bad_views_are_rejected_with_a_clear_error():
             carver.add_view(*view)
     assert carver.views_added == 0 and carver.occupancy.all()
     with pytest.raises(ValueError, match="bounds"):
-        VoxelCarver((0, 0, 0), (0, 1, 1), 0.01)
+        VoxelCarver((0, 0, 0), (0, 1, 1), 0.01, EXACT)
     with pytest.raises(ValueError, match="max_voxels"):
-        VoxelCarver((0, 0, 0), (10, 10, 10), 0.001)
+        VoxelCarver((0, 0, 0), (10, 10, 10), 0.001, EXACT)
 
 
 def temple_views():
@@ -377,7 +383,7 @@ def test_temple_hull_lies_in_the_published_box_and_covers_every_silhouette():
     # measured excess 5 mm at one bottom edge (-x), under 2 mm elsewhere (docs/carving.md).
     lo = box_lo - 0.02
     lo[1] = box_lo[1]
-    carver = carve(views, lo, box_hi + 0.02, 0.001)
+    carver = carve(views, lo, box_hi + 0.02, 0.001, EXACT)
     m = carver.metrics()
     assert np.all(np.array(m.bounds_min) >= box_lo - 0.006) and np.all(np.array(m.bounds_max) <= box_hi + 0.0025)
     # The hull's surface (binary field) covers each silhouette; the smoothed display mesh moves vertices
@@ -417,8 +423,8 @@ def cut_views(shape, count: int = 18):
 def test_floor_prior_keeps_the_object_and_removes_the_unseen_skirt(name):
     shape, views = FLOOR_SHAPES[name], cut_views(FLOOR_SHAPES[name])
     assert all(mask[-1].any() for mask, _, _ in views), "the scene must cut the object at the image bottom"
-    plain = carve(views, FLOOR_LO, FLOOR_HI, 0.003)
-    prior = carve(views, FLOOR_LO, FLOOR_HI, 0.003, CarvingParams(floor_prior=True))
+    plain = carve(views, FLOOR_LO, FLOOR_HI, 0.003, EXACT)
+    prior = carve(views, FLOOR_LO, FLOOR_HI, 0.003, dataclasses.replace(EXACT, floor_prior=True))
     inside = shape.contains(voxel_centres(prior)).reshape(prior.shape)
     assert np.all(prior.occupancy[inside]), "the floor prior carved a voxel of the true object"
     assert np.all(plain.occupancy >= prior.occupancy), "the prior may only remove voxels"
@@ -435,15 +441,15 @@ def test_floor_prior_follows_the_vanishing_point_of_verticals():
         roll = cv2.Rodrigues(np.array([0.0, 0.0, math.radians(5.0)]))[0]
         T[:3, :3] = T[:3, :3] @ roll
         views.append((render_mask(pole, NAO_CAMERA, T, (FLOOR_LO, FLOOR_HI)), NAO_CAMERA, T))
-    carver = carve(views, FLOOR_LO, FLOOR_HI, 0.003, CarvingParams(floor_prior=True))
+    carver = carve(views, FLOOR_LO, FLOOR_HI, 0.003, dataclasses.replace(EXACT, floor_prior=True))
     inside = pole.contains(voxel_centres(carver)).reshape(carver.shape)
     assert inside.any() and np.all(carver.occupancy[inside])
 
 
 def test_footprint_kills_exactly_the_voxels_outside_the_disk(scenes):
     views = scenes["cylinder"]
-    plain = carve(views, LO, HI, 0.004)
-    disk = carve(views, LO, HI, 0.004, footprint=(0.0, 0.0, 0.19))
+    plain = carve(views, LO, HI, 0.004, EXACT)
+    disk = carve(views, LO, HI, 0.004, EXACT, footprint=(0.0, 0.0, 0.19))
     x, y, _ = np.moveaxis(voxel_centres(plain).reshape(*plain.shape, 3), -1, 0)
     nearest = np.hypot(np.maximum(np.abs(x) - 0.002, 0.0), np.maximum(np.abs(y) - 0.002, 0.0))
     assert np.array_equal(disk.occupancy, plain.occupancy & (nearest <= 0.19))

@@ -11,6 +11,7 @@ centres.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 import time
@@ -19,7 +20,7 @@ from typing import Callable, List, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.carving import CarvingParams, View, VoxelCarver, carve
+from agent.carving import View, VoxelCarver, carve, load_carving_params
 from nao_core.geometry import invert
 from tests.carving_scenes import (
     Box,
@@ -42,6 +43,7 @@ FIGURE = Union(
 )
 LO, HI = (-0.2, -0.2, 0.0), (0.2, 0.2, 0.4)
 CASES = ((128, 36), (256, 100))
+EXACT = dataclasses.replace(load_carving_params(), tolerance=0, dilation=0, floor_prior=False)  # plain visual hull, as Open3D carves
 
 
 def scene_views(count: int) -> List[View]:
@@ -87,19 +89,19 @@ def run() -> str:
     import open3d as o3d
 
     views = {count: scene_views(count) for _, count in CASES}
-    carve(views[36][:1], LO, HI, 0.05)  # compile the numba kernel outside the timings
+    carve(views[36][:1], LO, HI, 0.05, EXACT)  # compile the numba kernel outside the timings
     rows = []
     for cells, count in CASES:
         pitch = (HI[0] - LO[0]) / cells
-        ours, t_ours, m_ours, cpu_ours = timed(lambda: carve(views[count], LO, HI, pitch).occupancy, 5)
+        ours, t_ours, m_ours, cpu_ours = timed(lambda: carve(views[count], LO, HI, pitch, EXACT).occupancy, 5)
         runs = [timed(lambda: open3d_carve(views[count], cells), 1) for _ in range(2 if cells <= 128 else 1)]
         theirs = runs[0][0][0]
         t_o3d, m_o3d = min(r[1] for r in runs), statistics.median(r[1] for r in runs)
         t_o3d_carve = min(r[0][1] for r in runs)
-        dense = carve(views[count], LO, HI, pitch, CarvingParams(octree_levels=0)).occupancy
+        dense = carve(views[count], LO, HI, pitch, dataclasses.replace(EXACT, octree_levels=0)).occupancy
         hull_ours = hull_o3d = "n/a"
         if cells <= 128:
-            centres = VoxelCarver(LO, HI, pitch).origin + pitch * np.indices(dense.shape).reshape(3, -1).T
+            centres = VoxelCarver(LO, HI, pitch, EXACT).origin + pitch * np.indices(dense.shape).reshape(3, -1).T
             hull = analytic_hull(FIGURE, views[count], centres).reshape(dense.shape)
             hull_ours, hull_o3d = f"{iou(ours, hull):.4f}", f"{iou(theirs, hull):.4f}"
         rows.append(

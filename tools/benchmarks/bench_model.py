@@ -17,6 +17,7 @@ keyframe cameras seen from above) go to ``docs/img/model_<name>.png``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -31,7 +32,7 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import cKDTree
 
 from agent.camera import CameraModel
-from agent.carving import CarvingParams, carve, load_npz
+from agent.carving import carve, load_carving_params, load_npz
 from agent.mesh import occupancy_to_mesh
 from nao_core.geometry import rot2
 from nao_core.robot_model import load_robot_model
@@ -150,7 +151,7 @@ def score(name: str, out: Path, failure: str = "no result") -> Dict[str, object]
     mission = np.zeros(shape, dtype=bool)
     mission[valid] = occupancy[tuple(index[valid].T)]
     poses = [np.asarray(m.json()["T_WC"], dtype=float).reshape(4, 4) for m in read_log(out / "run.mcap", topics={KEYFRAME})]
-    exact = CarvingParams(tolerance=0, dilation=0, floor_prior=False)
+    exact = dataclasses.replace(load_carving_params(), tolerance=0, dilation=0, floor_prior=False)
     hi = lo + PITCH * np.array(shape)
     corner = lo - 0.5 * PITCH
     same = carve(list(zip(_masks(truth, lo, camera, poses), [camera] * len(poses), poses)), corner, hi - 0.5 * PITCH, PITCH, exact).occupancy

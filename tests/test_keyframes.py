@@ -1,0 +1,86 @@
+"""Keyframes for the carve (agent/keyframes.py): spread around the object, precise poses, clean silhouettes."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.carving import load_carving_params
+from agent.keyframes import KeyframePool, pose_quality, select_keyframes, silhouette_quality
+
+PARAMS = load_carving_params()
+
+
+def _every_n_degrees(azimuths, min_angle):
+    """The old rule: a view is kept when its azimuth is >= min_angle from every earlier one."""
+    kept = []
+    for i, a in enumerate(azimuths):
+        if all(abs(math.remainder(a - azimuths[j], 2 * math.pi)) >= min_angle for j in kept):
+            kept.append(i)
+    return kept
+
+
+def test_a_fresh_precise_fix_replaces_a_dead_reckoned_view_of_the_same_direction():
+    # One orbit: each direction is first seen on dead reckoning (pose std 5 cm), then again right
+    # after a landmark fix (3 mm). Every-N-degrees keeps the first; the pool and the choice keep the fix.
+    min_angle = 0.17
+    directions = np.linspace(0.0, 2 * math.pi, 30, endpoint=False)  # 12 deg apart: one view per direction and pass
+    azimuths, qualities = [], []
+    for sigma in (0.05, 0.003):
+        for a in directions:
+            azimuths.append(float(a))
+            qualities.append(pose_quality(np.diag([sigma**2, sigma**2, 0.0]), 0.6, PARAMS.keyframe_pose_std))
+    pool = KeyframePool(min_angle)
+    kept = [i for i, (a, q) in enumerate(zip(azimuths, qualities)) if pool.offer(a, q)]
+    chosen = [kept[i] for i in select_keyframes([azimuths[i] for i in kept], [qualities[i] for i in kept], len(directions),
+                                                PARAMS.keyframe_gap)]
+    precise = set(range(len(directions), 2 * len(directions)))
+    assert set(chosen) == precise
+    assert not set(_every_n_degrees(azimuths, min_angle)) & precise
+
+
+def test_a_bounded_set_fills_the_largest_gaps_around_the_object():
+    # 30 views bunched on a quarter circle, then 6 spread over the rest: 8 keyframes must span the circle
+    # (largest gap <= 90 deg + the bunch's spacing), where the first 8 in time all lie on the quarter.
+    azimuths = list(np.linspace(0.0, math.pi / 2, 30)) + list(np.linspace(math.pi / 2 + 0.6, 2 * math.pi - 0.6, 6))
+    chosen = select_keyframes(azimuths, [1.0] * len(azimuths), 8, PARAMS.keyframe_gap)
+    assert len(chosen) == 8
+    a = np.sort(np.asarray(azimuths)[chosen])
+    gaps = np.diff(np.concatenate([a, [a[0] + 2 * math.pi]]))
+    assert gaps.max() <= math.pi / 2 + 1e-9
+    assert max(_every_n_degrees(azimuths, PARAMS.keyframe_gap)[:8]) < 30
+
+
+def test_silhouette_quality_prefers_whole_sharp_silhouettes():
+    image = np.full((240, 320, 3), 40, np.uint8)
+    mask = np.zeros((240, 320), np.uint8)
+    mask[60:200, 120:200] = 1
+    image[mask > 0] = 200
+    sharp = silhouette_quality(mask, image, PARAMS.keyframe_cut)
+    assert sharp == pytest.approx(1.0, abs=0.05)  # a step edge: 2 g / c = 1
+    blurred = silhouette_quality(mask, cv2.GaussianBlur(image, (0, 0), 3.0), PARAMS.keyframe_cut)
+    assert blurred < 0.5 * sharp  # an edge spread over ~7 px
+    cut = mask.copy()
+    cut[200:, 120:200] = 1  # the base below the image
+    image_cut = image.copy()
+    image_cut[cut > 0] = 200
+    assert silhouette_quality(cut, image_cut, PARAMS.keyframe_cut) == pytest.approx(PARAMS.keyframe_cut, abs=0.05)
+    assert silhouette_quality(np.zeros_like(mask), image, PARAMS.keyframe_cut) == 0.0
+
+
+def test_pose_quality_counts_heading_error_at_the_object_distance():
+    sigma_0 = PARAMS.keyframe_pose_std
+    assert pose_quality(np.diag([sigma_0**2, sigma_0**2, 0.0]), 0.6, sigma_0) == pytest.approx(0.5)
+    # A heading std of sigma_0 / d moves the object's image as much as sigma_0 of position.
+    assert pose_quality(np.diag([0.0, 0.0, (sigma_0 / 0.6) ** 2]), 0.6, sigma_0) == pytest.approx(0.5)
+    assert pose_quality(np.full((3, 3), np.nan), 0.6, sigma_0) == 0.0
+
+
+def test_bad_input_is_refused_by_name():
+    with pytest.raises(ValueError, match="azimuths and qualities"):
+        select_keyframes([0.0, 1.0], [1.0], 4, 0.1)
+    with pytest.raises(ValueError, match="finite"):
+        select_keyframes([math.nan], [1.0], 4, 0.1)
