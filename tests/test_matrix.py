@@ -141,7 +141,7 @@ MISSION_SEEDS = [1, 2, 4]
 def mission(request, tmp_path_factory):
     from tools.matrix import run_mission
 
-    return run_mission(request.param, tmp_path_factory.mktemp(f"matrix{request.param}"), "qvga")
+    return run_mission(request.param, tmp_path_factory.mktemp(f"matrix{request.param}"))  # the station's resolution
 
 
 def test_matrix_mission_completes_accurately_and_stops(mission):

@@ -12,6 +12,9 @@ import time
 
 import pytest
 
+from nao_core.robot_model import load_robot_model
+from station.config import load_station_config
+
 
 def station(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=60)
@@ -154,7 +157,8 @@ def test_capture_from_the_simulated_nao(tmp_path):
     result = station("capture", "--robot", "sim", "-o", str(tmp_path / "shots"), "--count", "2", "--every", "0.2")
     assert result.returncode == 0, result.stderr
     shots = sorted((tmp_path / "shots").glob("frame_*.jpg"))
-    assert len(shots) == 2 and all(cv2.imread(str(p)).shape == (240, 320, 3) for p in shots)  # qvga, config/station.yaml
+    intr = load_robot_model().camera.intrinsics(load_station_config().station.resolution)  # config/station.yaml's resolution
+    assert len(shots) == 2 and all(cv2.imread(str(p)).shape == (intr.height, intr.width, 3) for p in shots)
 
 
 def test_doctor_through_naoqi_on_the_standin(tmp_path):

@@ -17,7 +17,7 @@ true) camera. Measured against the simulator's truth:
   the station's final decision, and
   whether the robot is at rest when the station has exited.
 
-    python -m tools.matrix [--count 40] [--first-seed 0] [--resolution qvga] [--out runs/matrix]
+    python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
                            [--doc docs/benchmarks.md]
 
 A benchmark, not a test: a few fixed seeds run in the default suite (tests/test_matrix.py).
@@ -29,6 +29,8 @@ import argparse
 import dataclasses
 import json
 import math
+import os
+import platform
 import re
 import subprocess
 import sys
@@ -42,6 +44,7 @@ import yaml
 
 from nao_sim.randomize import RandomWorld, WorldSpec, random_world
 from nao_sim.standin import StandIn
+from station.config import load_station_config
 from station.mcap_log import read_log
 from station.topics import DECISION
 from tools.bench import BEGIN, END, section
@@ -114,10 +117,12 @@ def _final_decision_time(log: Path) -> Optional[float]:
     return decided
 
 
-def run_mission(seed: int, out: Path, resolution: str = "qvga", max_duration: Optional[float] = None,
+def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_duration: Optional[float] = None,
                 spec: Optional[WorldSpec] = None) -> MissionResult:
-    """One mission in world ``spec`` (default: ``random_world(seed)``); the run's files go to ``out``."""
+    """One mission in world ``spec`` (default: ``random_world(seed)``) at ``resolution`` (default: the
+    station's, config/station.yaml); the run's files go to ``out``."""
     out.mkdir(parents=True, exist_ok=True)
+    resolution = resolution or load_station_config().station.resolution
     spec = spec or random_world(seed)
     (out / "world.json").write_text(json.dumps(spec.summary(), indent=2) + "\n")
     override = out / "station.yaml"
@@ -160,8 +165,8 @@ def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
 
 
-def table(results: List[MissionResult]) -> str:
-    """Markdown: a summary per object kind and overall, then one row per mission."""
+def table(results: List[MissionResult], resolution: str, machine: str = "") -> str:
+    """Markdown: a summary per object kind and overall, then one row per mission; ``machine`` says where and when."""
     done = [r for r in results if r.outcome == "completed"]
 
     def stats(rows: List[MissionResult], label: str) -> str:
@@ -177,11 +182,11 @@ def table(results: List[MissionResult]) -> str:
 
     objects = sorted({r.world["object"] for r in results})
     lines = [
-        f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`), each through the NAOqi backend "
+        f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
         "against the stand-in (YUV422, latency, drops, clock offset), in a random landmark layout, with a random object, "
         "start pose (1.0-1.2 m, object up to 120 deg off the heading), walking errors, sway and a camera calibration "
         "off by 0.5 % and 1 px. Errors over completed missions; clearance is the least over all missions (true robot "
-        "origin to the object's outline).",
+        f"origin to the object's outline).{(' ' + machine) if machine else ''}",
         "",
         "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -212,7 +217,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--count", type=int, default=40, help="missions (seeds first-seed .. first-seed + count - 1)")
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--resolution", default="qvga")
+    parser.add_argument("--resolution", default=None, help="camera resolution (default: config/station.yaml's)")
     parser.add_argument("--out", type=Path, default=Path("runs/matrix"))
     parser.add_argument("--doc", type=Path, default=Path("docs/benchmarks.md"), help="document whose matrix section is rewritten")
     args = parser.parse_args(argv)
@@ -227,7 +232,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"matrix: seed {seed} {result.world['layout']}/{result.world['object']}: {result.outcome}, centre "
               f"{_fmt(result.centre_error, 1000)} mm, IoU {_fmt(result.iou, 1, 3)}, clearance {_fmt(result.min_clearance, 1, 3)} m "
               f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
-    write_section(args.doc, table(results))
+    resolution = args.resolution or load_station_config().station.resolution
+    machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
+               f"shared with other work (wall times vary; durations are the station's mission time).")
+    write_section(args.doc, table(results, resolution, machine))
     print(f"matrix: wrote the matrix section of {args.doc}", file=sys.stderr)
     return 0
 
