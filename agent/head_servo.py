@@ -27,13 +27,30 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import Deque, Optional, Sequence, Tuple
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Deque, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.perception import PerceptionParams, object_pixel_direction
+from agent.perception import object_pixel_direction
+from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.robot_model import RobotModel
+
+
+@dataclass(frozen=True)
+class HeadServoParams:
+    """Head servo settings (config/head_servo.yaml, section ``head_servo``)."""
+
+    aim_height: float = field(metadata=bounds(0.0, 2.0))  # m, aim height until the silhouettes bound the top
+    servo_gain: float = field(metadata=bounds(0.0, 1.0))  # g: weight of the measured centroid in the yaw target
+    search_pitch: float = field(metadata=bounds(-1.0, 1.0))  # rad, head pitch when there is no estimate yet
+
+
+def load_head_servo_params(overrides: Sequence[Union[str, Path]] = ()) -> HeadServoParams:
+    """HeadServoParams from config/head_servo.yaml merged with ``overrides``."""
+    return load(HeadServoParams, [CONFIG_DIR / "head_servo.yaml", *overrides], section="head_servo")
 
 
 def object_top(top_row: int, column: float, camera: CameraModel, T_WC: np.ndarray, x: Sequence[float]) -> Optional[float]:
@@ -77,7 +94,7 @@ def head_target(
     robot_model: RobotModel,
     pose: Optional[Sequence[float]],
     object_x: Optional[Sequence[float]],
-    params: PerceptionParams,
+    params: HeadServoParams,
     centroid_uv: Optional[Tuple[float, float]] = None,
     camera: Optional[CameraModel] = None,
     head_at_capture: Optional[Tuple[float, float]] = None,

@@ -93,9 +93,6 @@ class PerceptionParams:
     edge_band: float = field(metadata=bounds(0.0, 10.0))  # tangent-row band, in pixels' angles
     edge_window: int = field(metadata=bounds(0, 10))  # px: sub-pixel edge references this far out/in (0 = mask edge)
     edge_min_contrast: float = field(metadata=bounds(0.0, 442.0))  # BGR distance object-background for a sub-pixel edge
-    aim_height: float = field(metadata=bounds(0.0, 2.0))  # m, head servo aims at this height on the object
-    servo_gain: float = field(metadata=bounds(0.0, 1.0))  # weight of the measured centroid in the head target
-    search_pitch: float = field(metadata=bounds(-1.0, 1.0))  # rad, head pitch when there is no estimate yet
 
     def __post_init__(self) -> None:
         if self.object_color not in self.colors:

@@ -4,7 +4,7 @@ Before the first run in a room, from the landmark map alone: for robot poses on 
 object at the planner's comfortable distance d_min and either side of it (``--distances``, default
 0.75 d_min, d_min, 1.35 d_min), every ``--step`` degrees of azimuth, the robot facing the object,
 
-* *aimed*: the head aimed at the object (``perception.aim_height``), as while measuring it;
+* *aimed*: the head aimed at the object (``head_servo.aim_height``), as while measuring it;
 * *best*: the head turned to the direction with the most precise predicted fix
   (``RobotLocalizer.best_landmark_view`` over the head's range), as when the pilot looks for landmarks;
 
@@ -209,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     d_min = config.planner.d_min
     radii = args.distances or tuple(round(f * d_min, 3) for f in DISTANCE_FACTORS)
-    points = predict_orbit(localizer, robot, args.object, config.perception.aim_height, radii, args.step)
+    points = predict_orbit(localizer, robot, args.object, config.head_servo.aim_height, radii, args.step)
     limit = config.localization.max_position_std
     print(f"{args.landmarks}: {len(landmarks.landmarks)} landmarks, object at ({args.object[0]:.2f}, {args.object[1]:.2f}) m, "
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")

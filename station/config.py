@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Dict, Sequence, Tuple, Union
 
 from agent.carving import CarvingParams
+from agent.head_servo import HeadServoParams
 from agent.ekf import EKFParams
 from agent.localization import LocalizationParams
 from agent.mission import MissionParams
@@ -58,6 +59,7 @@ SECTIONS: Dict[str, type] = {
     "carving": CarvingParams,
     "perception": PerceptionParams,
     "localization": LocalizationParams,
+    "head_servo": HeadServoParams,
 }
 ROBOT_SECTION = "robot"
 
@@ -71,6 +73,7 @@ class StationConfig:
     carving: CarvingParams
     perception: PerceptionParams
     localization: LocalizationParams
+    head_servo: HeadServoParams
     landmarks: LandmarkMap
     overrides: Sequence[Path] = ()
 

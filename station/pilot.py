@@ -215,7 +215,7 @@ class Pilot:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
             head = self._landmark_lookout(t)
             if head is None:
-                head = head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera,
+                head = head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera,
                                    head_at_capture, self.height.aim)
                 self._object_gaze = head
                 decision = Decision(decision.phase, walk=self.command, head=head)
@@ -321,7 +321,7 @@ class Pilot:
         if not self.ekf.initialized:
             return None
         x = self.ekf.x
-        uv, in_front = self.camera.project_world(np.array([[x[0], x[1], self.config.perception.aim_height]]), T_WC)
+        uv, in_front = self.camera.project_world(np.array([[x[0], x[1], self.config.head_servo.aim_height]]), T_WC)
         return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
 
     def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
@@ -345,7 +345,7 @@ class Pilot:
         slot = int(t // p.gaze_dwell)
         if slot % 2 == 0 and self.ekf.initialized:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
-            return head_target(self.robot, self.pose, self.ekf.x, self.config.perception, centroid, self.camera, head_at_capture)
+            return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 

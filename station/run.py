@@ -308,7 +308,7 @@ class ControlLoop:
         self.log.proto(TRAJECTORY, foxglove.trajectory(t, self._trajectory), t)
         mask = step.keyframe.mask if step.keyframe is not None else None  # the silhouette the carver gets
         view = foxglove.frame_view(pose, measurement, self._estimate, mask, self.config.landmarks,
-                                   self.config.perception.aim_height)
+                                   self.config.head_servo.aim_height)
         self.log.proto(ANNOTATIONS, foxglove.image_annotations(pose.stamp, self.camera, view), t)
 
     def _send_walk(self, vx: float, vy: float, omega: float) -> None:

@@ -85,7 +85,7 @@ def walk_until_uncertain(pilot, t: float) -> float:
 
 
 def object_head(pilot):
-    return head_target(pilot.robot, pilot.pose, pilot.ekf.x, CONFIG.perception, aim_height=pilot.height.aim)
+    return head_target(pilot.robot, pilot.pose, pilot.ekf.x, CONFIG.head_servo, aim_height=pilot.height.aim)
 
 
 def test_an_uncertain_pose_alternates_the_head_with_the_best_landmark_view_and_a_fix_brings_it_back(monkeypatch):

@@ -54,7 +54,7 @@ def test_prediction_agrees_with_the_localizer_and_gaps_wrap_around():
     robot = load_robot_model()
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
     localizer = RobotLocalizer(config.localization, config.landmarks, camera, config.perception)
-    points = predict_orbit(localizer, robot, (0.0, 0.0), config.perception.aim_height, (0.8,), 45.0)
+    points = predict_orbit(localizer, robot, (0.0, 0.0), config.head_servo.aim_height, (0.8,), 45.0)
     assert len(points) == 8 and all(p.best_std <= p.aimed_std for p in points)
     bad = [OrbitPoint(0.8, a, math.inf, math.inf, math.nan) for a in range(3)]
     good = OrbitPoint(0.8, 0.0, 0.01, 0.01, 0.0)

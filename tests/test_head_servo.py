@@ -10,15 +10,14 @@ import numpy as np
 import pytest
 
 from agent.camera import CameraModel
-from agent.head_servo import ObjectHeight, head_target, object_top
-from agent.perception import PerceptionParams
-from nao_core.config import CONFIG_DIR, load
+from agent.head_servo import HeadServoParams, ObjectHeight, head_target, load_head_servo_params
+from agent.head_servo import object_top
 from nao_core.geometry import planar_transform
 
 
 @pytest.fixture(scope="module")
-def params() -> PerceptionParams:
-    return load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
+def params() -> HeadServoParams:
+    return load_head_servo_params()
 
 
 @pytest.fixture(scope="module")
