@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -84,3 +85,39 @@ def test_bad_input_is_refused_by_name():
         select_keyframes([0.0, 1.0], [1.0], 4, 0.1)
     with pytest.raises(ValueError, match="finite"):
         select_keyframes([math.nan], [1.0], 4, 0.1)
+
+
+def test_the_final_carve_keeps_the_precise_views_and_the_object():
+    # A can seen from 12 directions, each first on dead reckoning (recorded pose 3 cm off sideways, pose
+    # std 5 cm) and then after a fix (exact pose). First come (every N degrees) carves with the wrong
+    # poses and, with >= k + 1 of them disagreeing, eats into the can; the chosen keyframes keep it whole.
+    from agent.camera import CameraModel
+    from station.carving_worker import carve_views
+    from tests.carving_scenes import Cylinder, render_mask, ring_poses
+
+    can = Cylinder(0.0, 0.0, 0.05, 0.0, 0.12)
+    camera = CameraModel.from_fov(320, 240, math.radians(60.0))
+    box = ((-0.06, -0.06, 0.0), (0.06, 0.06, 0.13))
+    params = dataclasses.replace(PARAMS, pitch=0.004)
+    poses = ring_poses((0.0, 0.0, 0.06), 0.6, 12, (0.0,))
+    precise = pose_quality(np.diag([0.003**2, 0.003**2, 0.0]), 0.6, PARAMS.keyframe_pose_std)
+    drifted = pose_quality(np.diag([0.05**2, 0.05**2, 0.0]), 0.6, PARAMS.keyframe_pose_std)
+    views, qualities = [], []
+    for T in poses:
+        mask = render_mask(can, camera, T, box)
+        wrong = T.copy()
+        wrong[:3, 3] += 0.03 * T[:3, 0]  # 3 cm along the camera's x axis (sideways)
+        views += [(mask, camera, wrong), (mask, camera, T)]
+        qualities += [drifted, precise]
+    x, P = np.array([0.0, 0.0, 0.05]), np.diag([1e-6, 1e-6, 1e-6])
+    truth_points = np.stack(np.meshgrid(*(np.linspace(-0.045, 0.045, 10),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
+    truth_points = truth_points[can.contains(truth_points)]
+
+    def kept(carver):  # share of points well inside the can that survive
+        index = np.round((truth_points - carver.origin) / carver.pitch).astype(int)
+        return float(carver.occupancy[tuple(index.T)].mean())
+
+    chosen = carve_views(views, x, P, params, qualities=qualities)
+    first_come = carve_views(views[0::2], x, P, params)  # what every-N-degrees kept: the first view of each direction
+    assert kept(chosen) == 1.0
+    assert kept(first_come) < 0.9, kept(first_come)
