@@ -51,3 +51,28 @@ class RobotBackend(abc.ABC):
     def ground_truth(self) -> Optional[dict]:
         """Simulator truth (robot pose, object) as a JSON-able dict; None on a real robot."""
         return None
+
+    # -- what the bridge's stop confirmation and the robot-side watchdog need ----------------------
+
+    @property
+    def remote(self) -> bool:
+        """Whether the robot is on another machine (its link can fail while the bridge runs)."""
+        return False
+
+    def move_is_active(self) -> bool:
+        """Whether the robot is still walking (confirms a stop); by default from :meth:`read_state`."""
+        return bool(self.read_state().walking)
+
+    def kill_move(self) -> None:
+        """Stop walking at once, less gently than :meth:`stop_walking` (the escalation of a failed stop)."""
+        self.stop_walking()
+
+    def rest(self) -> None:
+        """Go to the rest posture, motors off (the last escalation of a failed stop)."""
+
+    def heartbeat(self, count: int) -> None:
+        """Tell the robot-side watchdog (nao_bridge.watchdog) the bridge is alive; no-op without one."""
+
+    def watchdog_count(self) -> Optional[int]:
+        """The robot-side watchdog's own counter (it changes while the watchdog runs), None without one."""
+        return None

@@ -6,7 +6,14 @@ through the inbox: the loop takes every frame that arrived since its last pass, 
 processes only the newest, so a slow pass never builds a backlog of stale frames, and callbacks
 never block Zenoh's receive thread. The bridge's liveliness token going away
 (crash, exit, or a frozen peer after the link lease) becomes a ``bridge_lost`` event; the
-station declares its own token so the bridge can stop the robot when the station goes away.
+station declares its own token ``station/alive/<id>`` so the bridge can stop the robot when the
+station goes away.
+
+One owner: :meth:`BridgeLink.start` takes the bridge's lease (first come) and every command
+carries its secret; :meth:`close` hands it back. A lease lost to ``station_lost`` is never taken
+again silently: :meth:`rearm` is the explicit re-arm. A state saying the bridge could not
+confirm a stop (``watchdog == "stop_failed"``) becomes a ``bridge_lost`` event with that reason
+as payload, so the mission aborts.
 """
 
 from __future__ import annotations
@@ -19,7 +26,18 @@ from typing import List, Tuple
 
 import zenoh
 
-from nao_core.protocol import HeadCommand, Info, RobotKeys, WalkCommand, decode, encode
+from nao_core.protocol import (
+    HeadCommand,
+    Info,
+    LeaseReply,
+    LeaseRequest,
+    ProtocolError,
+    RobotKeys,
+    State,
+    WalkCommand,
+    decode,
+    encode,
+)
 from nao_core.transport import TransportConfig, open_session
 
 
@@ -31,7 +49,7 @@ class Received:
 
 
 class BridgeUnavailable(RuntimeError):
-    """The bridge could not be reached or did not answer its info query."""
+    """The bridge could not be reached, did not answer its info query or refused the lease."""
 
 
 class BridgeLink:
@@ -48,6 +66,9 @@ class BridgeLink:
         self._frames: List[Received] = []  # arrived since the last take_frames()
         self._declared: list = []
         self._seq = 0
+        self.station_id = str(self.session.zid())
+        self.lease = ""
+        self._stop_failed_reported = False
 
     def fetch_info(self, timeout: float) -> Tuple[Info, bytes]:
         """The bridge's info and its bytes as received; retries until ``timeout`` (s)."""
@@ -63,19 +84,59 @@ class BridgeLink:
             time.sleep(0.1)
         raise BridgeUnavailable(f"no info from the bridge at {self.endpoint} on {self.keys.info} within {timeout:g} s ({last_error})")
 
-    def start(self) -> None:
-        """Subscribe to everything and declare the station's liveliness token."""
+    def start(self, lease_timeout: float = 5.0) -> None:
+        """Subscribe to everything, declare the station's liveliness token and take the lease."""
         sub = self.session.declare_subscriber
         self._declared += [
             sub(self.keys.camera_top, self._on_frame),
-            sub(self.keys.state, lambda s: self._put("state", s)),
+            sub(self.keys.state, self._on_state),
             sub(self.keys.sim_truth, lambda s: self._put("truth", s)),
             self.session.liveliness().declare_subscriber(self.keys.alive, self._on_alive, history=True),
-            self.session.liveliness().declare_token(self.keys.station_alive),
+            self.session.liveliness().declare_token(self.keys.station_token(self.station_id)),
         ]
         block = zenoh.CongestionControl.BLOCK
         self._walk = self.session.declare_publisher(self.keys.cmd_walk, congestion_control=block)
         self._head = self.session.declare_publisher(self.keys.cmd_head, congestion_control=block)
+        self.rearm(lease_timeout)
+
+    def rearm(self, timeout: float = 5.0) -> None:
+        """Take the bridge's lease (first come): the explicit (re-)arm. Raises BridgeUnavailable.
+
+        ``no_token`` (the bridge has not seen this station's token yet) is retried until ``timeout``;
+        ``held`` (another station owns the robot) is final.
+        """
+        deadline = time.monotonic() + timeout
+        reason = "no reply"
+        while True:
+            reply = self._lease_query(LeaseRequest(op="take", station=self.station_id, lease=""),
+                                      min(1.0, max(0.1, deadline - time.monotonic())))
+            if reply is not None:
+                if reply.granted:
+                    self.lease, self._seq = reply.lease, 0
+                    self._stop_failed_reported = False
+                    return
+                reason = reply.reason
+                if reason == "held":
+                    raise BridgeUnavailable(f"the bridge at {self.endpoint} is commanded by another station "
+                                            "(it must release the lease first)")
+            if time.monotonic() >= deadline:
+                raise BridgeUnavailable(f"no lease from the bridge at {self.endpoint} within {timeout:g} s ({reason})")
+            time.sleep(0.05)
+
+    def release(self) -> None:
+        """Hand the lease back (the explicit hand-over to another station)."""
+        if self.lease:
+            self._lease_query(LeaseRequest(op="release", station=self.station_id, lease=self.lease), 1.0)
+            self.lease = ""
+
+    def _lease_query(self, request: LeaseRequest, timeout: float):
+        for reply in self.session.get(self.keys.lease, payload=encode(request), timeout=timeout):
+            if reply.ok is not None:
+                try:
+                    return decode(reply.ok.payload.to_bytes(), LeaseReply)
+                except ProtocolError:
+                    return None
+        return None
 
     def take_frames(self) -> List[Received]:
         with self._frame_lock:
@@ -83,17 +144,21 @@ class BridgeLink:
         return frames
 
     def send_walk(self, vx: float, vy: float, omega: float, ttl: float) -> WalkCommand:
-        command = WalkCommand(seq=self._next_seq(), vx=vx, vy=vy, omega=omega, ttl=ttl)
+        command = WalkCommand(seq=self._next_seq(), vx=vx, vy=vy, omega=omega, ttl=ttl, lease=self.lease)
         self._walk.put(encode(command))
         return command
 
     def send_head(self, yaw: float, pitch: float, speed: float) -> HeadCommand:
-        command = HeadCommand(seq=self._next_seq(), yaw=yaw, pitch=pitch, speed=speed)
+        command = HeadCommand(seq=self._next_seq(), yaw=yaw, pitch=pitch, speed=speed, lease=self.lease)
         self._head.put(encode(command))
         return command
 
     def close(self) -> None:
-        """Undeclare everything (the station token disappears) and close the session. Idempotent."""
+        """Release the lease, undeclare everything (the token disappears), close the session. Idempotent."""
+        try:
+            self.release()
+        except zenoh.ZError:
+            pass
         declared, self._declared = self._declared, []
         for entity in reversed(declared):
             try:
@@ -111,6 +176,17 @@ class BridgeLink:
 
     def _put(self, kind: str, sample: zenoh.Sample) -> None:
         self.inbox.put(Received(kind, time.time(), sample.payload.to_bytes()))
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        received = Received("state", time.time(), sample.payload.to_bytes())
+        self.inbox.put(received)
+        try:
+            failed = decode(received.payload, State).watchdog == "stop_failed"
+        except ProtocolError:
+            return  # the control loop logs and counts it
+        if failed and not self._stop_failed_reported:
+            self._stop_failed_reported = True
+            self.inbox.put(Received("bridge_lost", received.t, b"stop_failed: the bridge cannot confirm a stop"))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         with self._frame_lock:

@@ -10,20 +10,24 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import List
 
 import cv2
 import numpy as np
 import pytest
 import zenoh
-from zenoh_peers import free_port, wait_until
+from zenoh_peers import free_port, station_token, take_lease, wait_until
 
 from nao_bridge.bridge import Bridge, BridgeParams
 from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_bridge.sim_backend import SimBackend
+from nao_bridge.watchdog import STOPS_KEY as WATCHDOG_STOPS
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import load_landmark_map
 from nao_core.protocol import (
@@ -56,9 +60,11 @@ def bridge_params(port: int, **changes) -> BridgeParams:
 class Station:
     """The station's side of the protocol, as small as a test needs."""
 
-    def __init__(self, port: int, name: str = "nao"):
+    def __init__(self, port: int, name: str = "nao", credentials: bool = False):
         self.keys = RobotKeys(name)
-        self.session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",), lease_ms=1000))
+        endpoint = (f"tcp/127.0.0.1:{port}",)
+        self.session = open_session(TransportConfig.with_credentials("station", connect=endpoint, robot=name)
+                                    if credentials else TransportConfig(connect=endpoint, lease_ms=1000, robot=name))
         self.states: List[State] = []
         self.frames: list = []
         self.truths: List[Truth] = []
@@ -74,17 +80,25 @@ class Station:
                 self.keys.alive, lambda s: self.bridge_alive.append(s.kind == zenoh.SampleKind.PUT), history=True
             ),
         ]
-        self.token = self.session.liveliness().declare_token(self.keys.station_alive)
+        self.id, self.token = station_token(self.session, self.keys)
         self.seq = 0
+        self.lease = self.rearm()
+
+    def rearm(self) -> str:
+        """Take the bridge's lease (the explicit arm); commands carry it."""
+        reply = take_lease(self.session, self.id, self.keys)
+        assert reply is not None and reply.granted, reply
+        self.lease, self.seq = reply.lease, 0
+        return reply.lease
 
     def walk(self, vx: float, vy: float = 0.0, omega: float = 0.0, ttl: float = 1.0) -> float:
         self.seq += 1
-        self.walk_pub.put(encode(WalkCommand(seq=self.seq, vx=vx, vy=vy, omega=omega, ttl=ttl)))
+        self.walk_pub.put(encode(WalkCommand(seq=self.seq, vx=vx, vy=vy, omega=omega, ttl=ttl, lease=self.lease)))
         return time.time()
 
     def head(self, yaw: float, pitch: float, speed: float = 0.5) -> None:
         self.seq += 1
-        self.head_pub.put(encode(HeadCommand(seq=self.seq, yaw=yaw, pitch=pitch, speed=speed)))
+        self.head_pub.put(encode(HeadCommand(seq=self.seq, yaw=yaw, pitch=pitch, speed=speed, lease=self.lease)))
 
     def state(self) -> State:
         assert wait_until(lambda: bool(self.states), WAIT), "no state received"
@@ -139,7 +153,7 @@ def walk_for(station: Station, duration: float, vx: float = 0.05, rate: float = 
 
 
 def malformed_walks() -> List[tuple]:
-    good = {"v": 1, "type": "cmd.walk", "seq": 1000, "vx": 0.05, "vy": 0.0, "omega": 0.0, "ttl": 1.0}
+    good = {"v": 1, "type": "cmd.walk", "seq": 1000, "vx": 0.05, "vy": 0.0, "omega": 0.0, "ttl": 1.0, "lease": "ab12"}
 
     def variant(**changes):
         data = dict(good, **changes)
@@ -167,9 +181,10 @@ def test_malformed_commands_are_rejected_counted_and_never_move_the_robot(rig):
     for reason, payload in malformed_walks():
         station.walk_pub.put(payload)
         expected[reason] = expected.get(reason, 0) + 1
-    station.head_pub.put(json.dumps({"v": 1, "type": "cmd.head", "seq": 1, "yaw": 0.0, "pitch": 0.0, "speed": 0.0}).encode())
+    station.head_pub.put(json.dumps({"v": 1, "type": "cmd.head", "seq": 1, "yaw": 0.0, "pitch": 0.0, "speed": 0.0,
+                                     "lease": station.lease}).encode())
     expected["bad_value"] += 1
-    station.head_pub.put(encode(WalkCommand(seq=1, vx=0.05, vy=0.0, omega=0.0, ttl=1.0)))  # walk on the head key
+    station.head_pub.put(encode(WalkCommand(seq=1, vx=0.05, vy=0.0, omega=0.0, ttl=1.0, lease=station.lease)))  # walk on the head key
     expected["type"] += 1
     assert wait_until(lambda: station.state().rejected == expected, WAIT), station.state().rejected
     time.sleep(0.1)
@@ -249,21 +264,30 @@ def test_fall_stops_reports_fallen_and_refuses_walking(rig):
     assert len(moves(standin)) == count
 
 
-def test_station_liveliness_lost_stops_before_the_deadman(standin):
+def test_station_lost_stops_before_the_deadman_and_stays_stopped_until_rearmed(standin):
     port = free_port()
     params = bridge_params(port, deadman_s=2.0)
     bridge = Bridge(NaoqiBackend(standin.url, MODEL, params.naoqi, "qvga", 15.0), MODEL, params, "naoqi")
     with bridge:
         station = Station(port)
-        assert wait_until(lambda: bridge.station_alive, WAIT)
         station.walk(0.05, ttl=5.0)
         assert wait_until(lambda: bool(moves(standin)), WAIT)
         lost = time.time()
-        station.token.undeclare()
+        station.token.undeclare()  # what a frozen station looks like once its link lease expires
         assert wait_until(lambda: any(c.time > lost for c in stops(standin)), timeout=1.0)
         assert next(c for c in stops(standin) if c.time > lost).time - lost < 0.5 < params.deadman_s
-        station.walk(0.05, ttl=5.0)  # without a station token, walking is refused
-        assert wait_until(lambda: station.state().ignored.get("no_station") == 1, WAIT)
+        assert wait_until(lambda: station.state().watchdog == "station_lost" and station.state().owner is None, WAIT)
+        # the station comes back (a frozen one resuming): its token again, its old lease, newer seqs
+        station.token = station.session.liveliness().declare_token(station.keys.station_token(station.id))
+        assert wait_until(lambda: bridge.station_alive, WAIT)
+        count = len(moves(standin))
+        for _ in range(5):
+            station.walk(0.05, ttl=5.0)
+        assert wait_until(lambda: station.state().ignored.get("not_owner") == 5, WAIT), station.state().ignored
+        assert len(moves(standin)) == count and station.state().watchdog == "station_lost"
+        station.rearm()  # the explicit re-arm: a new lease
+        station.walk(0.05, ttl=5.0)
+        assert wait_until(lambda: len(moves(standin)) > count, WAIT)
         station.close()
 
 
@@ -386,7 +410,7 @@ def test_cli_sim_runs_and_exits_cleanly_on_sigterm():
         stderr=subprocess.PIPE, text=True,
     )
     try:
-        station = Station(port, name="clitest")
+        station = Station(port, name="clitest", credentials=True)  # the CLI's default: generated credentials
         assert wait_until(lambda: bool(station.frames) and bool(station.states), timeout=15.0)
         station.close()
     finally:
@@ -419,3 +443,148 @@ def test_cli_unreachable_robot_exits_1_without_traceback():
     )
     assert proc.returncode == 1
     assert "cannot reach NAOqi" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# -- confirmed stops ----------------------------------------------------------------------------------
+
+
+def test_a_stop_that_fails_once_is_retried_and_confirmed_and_reported(rig):
+    bridge, station, standin = rig
+    real_stop, failures = bridge.backend.stop_walking, []
+
+    def stop_once_broken() -> None:
+        if not failures:
+            failures.append(time.time())
+            raise RuntimeError("injected: NAOqi link down")
+        real_stop()
+
+    bridge.backend.stop_walking = stop_once_broken
+    station.walk(0.05, ttl=0.2)
+    assert wait_until(lambda: bool(moves(standin)), WAIT)
+    assert wait_until(lambda: bool(failures) and bool(stops(standin)), WAIT), "the failed stop was never retried"
+    retry = stops(standin)[0]
+    # retried by the next control period, not by a later command (none is sent)
+    assert retry.time - failures[0] <= bridge.params.control_period_s + bridge.params.call_timeout_s
+    confirm = [c for c in standin.calls_to("ALMotion.moveIsActive") if c.time >= retry.time]
+    assert confirm, "the stop was never confirmed with moveIsActive"
+    assert wait_until(lambda: not station.state().walking, WAIT), "the robot never stopped (it decelerates first)"
+    state = station.fresh_state()
+    assert state.stop_failures == 1 and state.watchdog == "deadman", state
+    assert not bridge._moving and bridge._pending is None  # confirmed: the safety thread stopped retrying
+
+
+def test_a_stop_never_confirmed_escalates_reports_stop_failed_and_refuses_walks(standin):
+    port = free_port()
+    params = bridge_params(port, stop_escalate_s=0.2)
+    bridge = Bridge(NaoqiBackend(standin.url, MODEL, params.naoqi, "qvga", 15.0), MODEL, params, "naoqi")
+    with bridge:
+        station = Station(port)
+        bridge.backend.move_is_active = lambda: True  # NAOqi keeps saying the robot walks
+        station.walk(0.05, ttl=0.1)
+        assert wait_until(lambda: bool(standin.calls_to("ALMotion.killMove")), WAIT), "no killMove"
+        assert wait_until(lambda: bool(standin.calls_to("ALMotion.rest")), WAIT), "no rest after twice the time"
+        assert wait_until(lambda: station.state().watchdog == "stop_failed", WAIT)
+        count = len(moves(standin))
+        station.walk(0.05, ttl=5.0)
+        station.fresh_state()
+        assert len(moves(standin)) == count and station.state().stop_failures >= 1
+        del bridge.backend.move_is_active  # NAOqi confirms the stop again
+        assert wait_until(lambda: station.state().watchdog != "stop_failed", WAIT)
+        station.close()
+
+
+def test_a_blocked_backend_call_times_out_and_the_stop_is_retried(rig):
+    bridge, station, standin = rig
+    real_stop, blocked = bridge.backend.stop_walking, []
+
+    def stop_blocked_once() -> None:
+        if not blocked:
+            blocked.append(time.time())
+            time.sleep(2.0)  # a NAOqi call that never answers in time
+        real_stop()
+
+    bridge.backend.stop_walking = stop_blocked_once
+    station.walk(0.05, ttl=0.2)
+    assert wait_until(lambda: bool(blocked), WAIT)
+    # the retry arrives after the call timeout, long before the blocked call returns
+    assert wait_until(lambda: any(c.time < blocked[0] + 2.0 for c in stops(standin)), WAIT)
+    assert wait_until(lambda: station.state().stop_failures == 1 and not station.state().walking, WAIT)
+
+
+# -- the robot-side watchdog --------------------------------------------------------------------------
+
+
+def test_watchdog_is_python_2_7_compatible():
+    """vermin (a test extra) finds the minimum Python versions of every construct and module used."""
+    done = subprocess.run([str(Path(sys.executable).with_name("vermin")), "-t=2.7-", "-t=3.6-", "--no-tips", "--violations",
+                           str(Path(__file__).parents[1] / "nao_bridge" / "watchdog.py")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def _bridge_process(standin: StandIn, port: int, tmp_path: Path, required: bool) -> subprocess.Popen:
+    override = tmp_path / "bridge.yaml"
+    override.write_text(json.dumps({"bridge": {"resolution": "qvga", "fps": 5.0,
+                                               "robot_watchdog": "required" if required else "auto"}}))
+    return subprocess.Popen([sys.executable, "-m", "nao_bridge.cli", "--naoqi", standin.url, "--insecure",
+                             "--listen", f"tcp/127.0.0.1:{port}", "--config", str(override)],
+                            stdout=open(tmp_path / "bridge.log", "wb"), stderr=subprocess.STDOUT)
+
+
+def test_frozen_bridge_is_stopped_by_the_robot_side_watchdog(standin, tmp_path):
+    """Bridge off the robot, watchdog required: no walk without the watchdog; SIGSTOP -> stopMove from it."""
+    port = free_port()
+    bridge = _bridge_process(standin, port, tmp_path, required=True)
+    watchdog = None
+    try:
+        station = Station(port)
+        assert wait_until(lambda: station.state().robot_watchdog == "missing", 20.0)
+        walk_for(station, 0.5)
+        assert moves(standin) == [] and station.state().watchdog == "no_robot_watchdog"
+        timeout, period = 0.3, 0.05
+        watchdog = subprocess.Popen([sys.executable, "-m", "nao_bridge.watchdog", "--url", standin.url,
+                                     "--timeout", str(timeout), "--period", str(period)])
+        assert wait_until(lambda: station.state().robot_watchdog == "ok", 10.0)
+        walk_for(station, 0.5, ttl=5.0)
+        assert moves(standin), "the robot never walked with the watchdog answering"
+        frozen = time.time()
+        bridge.send_signal(signal.SIGSTOP)  # the station machine freezes: no heartbeat, no stop from the bridge
+        assert wait_until(lambda: any(c.time > frozen for c in stops(standin)), 2.0), "nothing stopped the robot"
+        stop = next(c for c in stops(standin) if c.time > frozen)
+        # the watchdog's bound: last heartbeat <= freeze, + timeout + one check period + one NAOqi call
+        assert stop.time - frozen <= 0.5, stop.time - frozen
+        from_watchdog = [c for c in standin.calls_to("ALMemory.insertData") if c.args[0] == WATCHDOG_STOPS]
+        assert from_watchdog and from_watchdog[0].time >= stop.time
+        assert not standin.world.is_walking() or standin.calls_to("ALMotion.moveIsActive")
+        bridge.send_signal(signal.SIGCONT)
+        station.close()
+    finally:
+        for process in (watchdog, bridge):
+            if process is not None:
+                process.send_signal(signal.SIGCONT)
+                process.terminate()
+                process.wait(10)
+
+
+def test_install_watchdog_copies_and_starts_it_over_ssh(tmp_path):
+    """``install-watchdog`` with stand-ins for ssh and scp that run on this machine in a fake home."""
+    home = tmp_path / "home"
+    home.mkdir()
+    fake_ssh, fake_scp = tmp_path / "ssh", tmp_path / "scp"
+    fake_ssh.write_text(f'#!/bin/sh\necho "$1" >> {tmp_path}/targets\nshift\ncd {home} && HOME={home} sh -c "$*"\n')
+    fake_scp.write_text(f'#!/bin/sh\necho "$2" >> {tmp_path}/targets\ncp "$1" "{home}/${{2#*:}}"\n')
+    for script in (fake_ssh, fake_scp):
+        script.chmod(0o755)
+    code = subprocess.run([sys.executable, "-m", "nao_bridge.cli", "install-watchdog", "nao.local", "--timeout", "0.3",
+                           "--python", sys.executable, "--ssh", str(fake_ssh), "--scp", str(fake_scp)],
+                          capture_output=True, text=True, timeout=60)
+    pid_file = home / "nao-active-recon" / "watchdog.pid"
+    try:
+        assert code.returncode == 0, code.stderr
+        assert "watchdog running" in code.stdout
+        assert (home / "nao-active-recon" / "watchdog.py").read_bytes() == \
+            (Path(__file__).parents[1] / "nao_bridge" / "watchdog.py").read_bytes()
+        assert set((tmp_path / "targets").read_text().split()) == {"nao@nao.local", "nao@nao.local:nao-active-recon/watchdog.py"}
+    finally:
+        if pid_file.exists():
+            os.kill(int(pid_file.read_text()), signal.SIGTERM)

@@ -19,20 +19,30 @@ import pytest
 import zenoh
 
 from nao_core.config import CONFIG_DIR, ConfigError, from_mapping, load
-from nao_core.protocol import RobotKeys, WalkCommand, encode
+from nao_core.protocol import HeadCommand, RobotKeys, WalkCommand, encode
+from nao_bridge.bridge import BridgeParams
 from nao_core.transport import (
     TransportConfig,
     UserPassword,
     access_control,
+    ensure_credentials,
+    exposure,
     open_session,
 )
-from tests.zenoh_peers import bridge_on_standin, free_port, lab_certificates, wait_until
+from tests.zenoh_peers import (
+    bridge_on_standin,
+    free_port,
+    lab_certificates,
+    station_token,
+    take_lease,
+    wait_until,
+)
 from tools.make_certs import CertError, make_lab_certificates
 from tools.make_certs import main as make_certs_main
 
 N = 40  # commands per intruder
 KEYS = RobotKeys("nao")
-WALK = encode(WalkCommand(seq=10**6, vx=0.1, vy=0.0, omega=0.2, ttl=1.0))
+WALK = encode(WalkCommand(seq=10**6, vx=0.1, vy=0.0, omega=0.2, ttl=1.0, lease=""))
 SETTLE = 1.0  # s for a refused link to be refused (loopback handshakes take milliseconds)
 
 
@@ -132,7 +142,7 @@ def test_viewer_watches_but_its_commands_are_dropped(certs, fake_bridge):
     try:
         states = []
         viewer.declare_subscriber(KEYS.state, lambda s: states.append(1))
-        token = viewer.liveliness().declare_token(KEYS.station_alive)  # pretends to be the station
+        token = viewer.liveliness().declare_token(KEYS.station_token("viewer"))  # pretends to be a station
         seen_station = []
         bridge.session.liveliness().declare_subscriber(KEYS.station_alive, lambda s: seen_station.append(1),
                                                        history=True)
@@ -190,28 +200,120 @@ def test_real_bridge_moves_only_for_the_station(certs, rogue_certs):
         try:
             station = peer("station", certs, port)
             sessions.append(station)
-            token = station.liveliness().declare_token(KEYS.station_alive)
-            assert wait_until(lambda: bridge.station_alive, 5.0), "the bridge never saw the station"
+            station_id, token = station_token(station)
+            lease = take_lease(station, station_id)
+            assert lease is not None and lease.granted, lease
             intruders = [open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))),
                          peer("station", rogue_certs, port), peer("viewer", certs, port)]
             sessions += intruders
             time.sleep(SETTLE)
             for seq, intruder in enumerate(intruders):
                 for i in range(N):
-                    command = WalkCommand(seq=10**6 * (seq + 1) + i, vx=0.1, vy=0.0, omega=0.2, ttl=1.0)
+                    command = WalkCommand(seq=10**6 * (seq + 1) + i, vx=0.1, vy=0.0, omega=0.2, ttl=1.0, lease="")
                     intruder.put(KEYS.cmd_walk, encode(command))
                     time.sleep(0.005)
             time.sleep(0.5)
             assert standin.calls_to("ALMotion.move") == []
             assert sum(bridge.rejected.values()) + sum(bridge.ignored.values()) == 0  # dropped before decoding
             for i in range(1, 6):  # control: the station's commands do move the robot
-                station.put(KEYS.cmd_walk, encode(WalkCommand(seq=i, vx=0.1, vy=0.0, omega=0.0, ttl=1.0)))
+                station.put(KEYS.cmd_walk, encode(WalkCommand(seq=i, vx=0.1, vy=0.0, omega=0.0, ttl=1.0,
+                                                              lease=lease.lease)))
                 time.sleep(0.02)
             assert wait_until(lambda: len(standin.calls_to("ALMotion.move")) > 0, 5.0)
             token.undeclare()
         finally:
             for session in sessions:
                 session.close()
+
+
+def test_default_configuration_lets_only_the_lease_holder_command(tmp_path, monkeypatch):
+    """bridge.yaml as shipped (credentials generated on first use, the bridge's policy): rogue peers,
+    a second station with the station's own credentials, and huge sequence numbers get 0 of N through."""
+    monkeypatch.setenv("NAO_RECON_CREDENTIALS", str(tmp_path / "credentials"))
+    shipped = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").transport
+    assert shipped.credentials is not None and shipped.listen == ("tcp/[::]:7447",)
+    port = free_port()
+    listen = dataclasses.replace(shipped, listen=(f"tcp/127.0.0.1:{port}",))
+    endpoint = (f"tcp/127.0.0.1:{port}",)
+
+    def as_user(user: str) -> zenoh.Session:
+        return open_session(TransportConfig.with_credentials(user, connect=endpoint))
+
+    with bridge_on_standin(listen, seed=2) as (bridge, standin):
+        assert (tmp_path / "credentials").stat().st_mode & 0o077 == 0  # generated, private
+        sessions = []
+        try:
+            station = as_user("station")
+            sessions.append(station)
+            station_id, _token = station_token(station)
+            owned = take_lease(station, station_id)
+            assert owned is not None and owned.granted
+            second = as_user("station")  # a second station: same credentials, its own token
+            rogue_plain = open_session(TransportConfig(connect=endpoint))  # no credentials at all
+            rogue_viewer = as_user("viewer")
+            sessions += [second, rogue_plain, rogue_viewer]
+            second_id, _second_token = station_token(second)
+            for rogue in (rogue_plain, rogue_viewer):
+                rogue.liveliness().declare_token(KEYS.station_token(str(rogue.zid())))  # declares a station token
+            held = take_lease(second, second_id, timeout=2.0)
+            assert held is not None and not held.granted and held.reason == "held"
+            assert take_lease(rogue_viewer, str(rogue_viewer.zid()), timeout=0.5) is None  # the policy drops it
+            moves = len(standin.calls_to("ALMotion.move"))
+            heads = len(standin.calls_to("ALMotion.setAngles"))
+            through_auth = 0
+            for rogue in (second, rogue_plain, rogue_viewer):
+                for i in range(N):
+                    seq = 10**9 + i  # far ahead of the real station's numbering
+                    for guess in ("", "0" * 32, held.lease):
+                        rogue.put(KEYS.cmd_walk, encode(WalkCommand(seq=seq, vx=0.1, vy=0.0, omega=0.2, ttl=1.0, lease=guess)))
+                        rogue.put(KEYS.cmd_head, encode(HeadCommand(seq=seq, yaw=0.5, pitch=0.1, speed=0.5, lease=guess)))
+                        through_auth += 2 if rogue is second else 0
+                    time.sleep(0.002)
+            assert wait_until(lambda: bridge.ignored.get("not_owner", 0) == through_auth, 5.0), dict(bridge.ignored)
+            assert len(standin.calls_to("ALMotion.move")) == moves
+            assert len(standin.calls_to("ALMotion.setAngles")) == heads
+            for i in range(1, 4):  # control: the owner, numbering from 1, is not locked out
+                station.put(KEYS.cmd_walk, encode(WalkCommand(seq=i, vx=0.1, vy=0.0, omega=0.0, ttl=1.0, lease=owned.lease)))
+            assert wait_until(lambda: len(standin.calls_to("ALMotion.move")) > moves, 5.0)
+        finally:
+            for session in sessions:
+                session.close()
+
+
+@pytest.mark.parametrize("listen, options, error, exposed", [
+    ("tcp/[::]:7447", ["--config", "{plain}"], "give --insecure", None),  # authentication configured away
+    ("tcp/0.0.0.0:7447", ["--config", "{plain}"], "give --insecure", None),
+    ("tcp/[::]:7447", [], None, False),  # the default: credentials
+    ("tcp/[::]:7447", ["--insecure"], None, True),  # accepted, warned about at every start
+    ("tcp/127.0.0.1:7447", ["--insecure"], None, False),
+])
+def test_listening_beyond_loopback_without_authentication_needs_insecure(tmp_path, listen, options, error, exposed):
+    from nao_bridge.cli import load_params, parse_args
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("bridge:\n  transport: {credentials: null}\n")
+    argv = ["--sim", "--listen", listen] + [str(plain) if o == "{plain}" else o for o in options]
+    if error:
+        with pytest.raises(ConfigError, match=error):
+            load_params(parse_args(argv))
+    else:
+        params = load_params(parse_args(argv))
+        assert params.transport.authenticated == (options == [])
+        assert (exposure(params.transport) is not None) == exposed  # main() logs it as a warning at every start
+
+
+def test_default_transport_is_authenticated_and_the_credentials_are_generated_once(tmp_path):
+    path = tmp_path / "sub" / "credentials"
+    first = ensure_credentials(path)
+    assert set(first) == {"bridge", "station", "viewer"} and ensure_credentials(path) == first
+    assert len({*first.values()}) == 3 and path.stat().st_mode & 0o077 == 0
+    bridge = TransportConfig.with_credentials("bridge", listen=("tcp/[::]:7447",), credentials=str(path)).resolved()
+    assert bridge.usrpwd.dictionary_file == str(path) and bridge.acl_file.endswith("acl_bridge.yaml")
+    assert exposure(bridge) is None
+    assert all("cert_common_names" not in s for s in access_control(bridge)["subjects"])  # user names alone
+    path.write_text("station:x\n")
+    with pytest.raises(ConfigError, match="no password for bridge, viewer"):
+        ensure_credentials(path)
 
 
 # -- configuration -------------------------------------------------------------------------------
@@ -240,7 +342,9 @@ def test_policies_allow_commands_only_from_the_station(role):
     ]
     expected = {"bridge": [(["station"], ["ingress"])], "station": [(["bridge"], ["egress"])], "viewer": []}
     assert command_puts == expected[role]
-    assert all(rule["permission"] == "allow" and "*" not in "".join(rule["key_exprs"]) for rule in rules.values())
+    # exact keys only, but for the station tokens station/alive/<station id> (one chunk, never **)
+    assert all(rule["permission"] == "allow" for rule in rules.values())
+    assert all("*" not in k or k == "nao/nao/station/alive/*" for rule in rules.values() for k in rule["key_exprs"])
 
 
 def test_usernames_are_dropped_without_user_password(certs):

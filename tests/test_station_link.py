@@ -15,7 +15,8 @@ from station.link import BridgeLink, BridgeUnavailable
 
 
 def plain(endpoint: str) -> TransportConfig:
-    return TransportConfig(connect=(endpoint,), lease_ms=1000)
+    """The station's default: the credentials generated on first use (shared with the bridge on this machine)."""
+    return TransportConfig.with_credentials("station", connect=(endpoint,), lease_ms=1000)
 
 
 def wait_for(predicate, timeout: float, step: float = 0.05):

@@ -1,5 +1,5 @@
 """Helpers for tests with real Zenoh sessions on loopback: free ports, lab certificates, waiting,
-and the real bridge on the NAOqi stand-in."""
+the station's lease, and the real bridge on the NAOqi stand-in."""
 
 from __future__ import annotations
 
@@ -7,11 +7,14 @@ import contextlib
 import dataclasses
 import time
 from pathlib import Path
-from typing import Callable, Iterator, Tuple
+from typing import Callable, Iterator, Optional, Tuple
+
+import zenoh
 
 from nao_bridge.bridge import Bridge, BridgeParams
 from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_core.config import CONFIG_DIR, load
+from nao_core.protocol import LeaseReply, LeaseRequest, RobotKeys, decode, encode
 from nao_core.robot_model import load_robot_model
 from nao_core.transport import TransportConfig
 from nao_sim.standin import StandIn
@@ -19,7 +22,7 @@ from nao_sim.world import SimWorld
 from station.launch import free_port
 from tools.make_certs import make_lab_certificates
 
-__all__ = ["bridge_on_standin", "free_port", "lab_certificates", "wait_until"]
+__all__ = ["bridge_on_standin", "free_port", "lab_certificates", "station_token", "take_lease", "wait_until"]
 
 
 def lab_certificates(folder: Path) -> Path:
@@ -36,6 +39,27 @@ def wait_until(condition: Callable[[], bool], timeout: float, poll: float = 0.01
             return True
         time.sleep(poll)
     return condition()
+
+
+def station_token(session: zenoh.Session, keys: RobotKeys = RobotKeys()) -> Tuple[str, zenoh.LivelinessToken]:
+    """Declare the station liveliness token of ``session``; return its station id and the token."""
+    station = str(session.zid())
+    return station, session.liveliness().declare_token(keys.station_token(station))
+
+
+def take_lease(session: zenoh.Session, station: str, keys: RobotKeys = RobotKeys(), timeout: float = 5.0,
+               op: str = "take", lease: str = "") -> Optional[LeaseReply]:
+    """Ask the bridge's lease queryable; ``no_token`` (the token not seen yet) is retried until ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        reply = None
+        for answer in session.get(keys.lease, payload=encode(LeaseRequest(op=op, station=station, lease=lease)),
+                                  timeout=1.0):
+            if answer.ok is not None:
+                reply = decode(answer.ok.payload.to_bytes(), LeaseReply)
+        if (reply is not None and reply.reason != "no_token") or time.monotonic() > deadline:
+            return reply
+        time.sleep(0.02)
 
 
 @contextlib.contextmanager

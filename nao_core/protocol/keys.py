@@ -48,8 +48,15 @@ class RobotKeys:
         return f"{self.prefix}/alive"
 
     @property
-    def station_alive(self) -> str:  # liveliness token of the station
-        return f"{self.prefix}/station/alive"
+    def station_alive(self) -> str:  # liveliness tokens of stations: station/alive/<station id>
+        return f"{self.prefix}/station/alive/*"
+
+    def station_token(self, station: str) -> str:  # the liveliness token of one station
+        return f"{self.prefix}/station/alive/{station}"
+
+    @property
+    def lease(self) -> str:  # queryable served by the bridge: LeaseRequest -> LeaseReply
+        return f"{self.prefix}/lease"
 
     @property
     def sim_truth(self) -> str:  # simulator ground truth (tests and reports only)

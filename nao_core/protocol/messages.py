@@ -11,7 +11,13 @@ magic and version byte (frames), UTF-8 and JSON syntax, NaN/Infinity (not JSON, 
 parser accepts them), ``v``, ``type``, missing and unknown fields, then types and ranges of the
 values through the project's strict converter (``nao_core.config.from_mapping``) with the
 ``bounds`` declared on each field. Protocol bounds are wide sanity limits; clamping to the robot's
-limits is the bridge's job, after decoding.
+limits is the bridge's job, after decoding. Whatever else goes wrong inside the decoder on hostile
+input (``RecursionError`` from deep nesting, ``ValueError`` from an integer of more than 4,300
+digits, ``OverflowError`` from an integer too large for a float) is a ``ProtocolError`` too:
+nothing but ProtocolError ever leaves :func:`decode`, :func:`decode_any` or :func:`decode_frame`.
+
+Commands carry the ``lease`` the bridge granted to the one station that owns the robot
+(``lease.request`` / ``lease.reply`` on the ``lease`` queryable, docs/protocol.md).
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ MAX_JSON_BYTES = 64 * 1024
 MAX_META_BYTES = 8 * 1024
 MAX_FRAME_BYTES = 8 * 1024 * 1024
 MAX_SEQ = 2**53 - 1  # exact in every JSON implementation
+MAX_ID_CHARS = 64  # station ids and lease secrets (hex)
 FRAME_MAGIC = b"NAOF"
 _FRAME_HEADER = struct.Struct("<4sBI")
 _JPEG_SOI = b"\xff\xd8"
@@ -89,6 +96,7 @@ class WalkCommand:
     vy: float = field(metadata=bounds(-1.0, 1.0))  # left, m/s (0 for unicycle walking)
     omega: float = field(metadata=bounds(-5.0, 5.0))  # counter-clockwise, rad/s
     ttl: float = field(metadata=bounds(0.0, 10.0))  # s after arrival
+    lease: str  # the secret of the station's lease (LeaseReply.lease)
 
 
 @dataclass(frozen=True)
@@ -100,9 +108,37 @@ class HeadCommand:
     yaw: float = field(metadata=bounds(-3.2, 3.2))  # rad
     pitch: float = field(metadata=bounds(-3.2, 3.2))  # rad, down > 0 (NAO HeadPitch)
     speed: float = field(metadata=bounds(0.01, 1.0))  # fraction of the maximum speed
+    lease: str  # the secret of the station's lease (LeaseReply.lease)
 
 
-Watchdog = Literal["idle", "walking", "deadman", "fallen", "station_lost", "shutdown"]
+@dataclass(frozen=True)
+class LeaseRequest:
+    """Asked on the bridge's ``lease`` queryable: take the robot (first come) or hand it back.
+
+    ``station`` is the id in the station's liveliness token ``station/alive/<station>``: the
+    lease lives as long as that token. Taking the lease is also how a station re-arms the robot
+    after ``station_lost``.
+    """
+
+    TYPE: ClassVar[str] = "lease.request"
+    op: Literal["take", "release"]
+    station: str  # 1-64 characters from [0-9a-z]
+    lease: str  # "" to take; the secret to release
+
+
+@dataclass(frozen=True)
+class LeaseReply:
+    """The bridge's answer: ``granted`` with the secret that commands must carry, or the reason not."""
+
+    TYPE: ClassVar[str] = "lease.reply"
+    granted: bool
+    lease: str  # the secret ("" when refused or released)
+    reason: str  # "granted", "released", "held" (another station owns it), "no_token", "bad_lease"
+
+
+Watchdog = Literal[
+    "idle", "walking", "deadman", "fallen", "station_lost", "shutdown", "stop_failed", "no_robot_watchdog"
+]
 
 
 @dataclass(frozen=True)
@@ -121,6 +157,9 @@ class State:
     watchdog: Watchdog  # why the robot is (not) walking
     rejected: Dict[str, int] = field(metadata=bounds(0))  # malformed messages per ProtocolError reason
     ignored: Dict[str, int] = field(metadata=bounds(0))  # valid commands not acted on, per cause
+    owner: Optional[str]  # station id holding the lease, None when nobody does
+    stop_failures: int = field(metadata=bounds(0))  # stop attempts that failed or were not confirmed
+    robot_watchdog: Literal["off", "ok", "missing"]  # the watchdog process on the robot (nao_bridge.watchdog)
 
 
 @dataclass(frozen=True)
@@ -200,7 +239,9 @@ class Truth:
     object: TruthObject
 
 
-MESSAGE_TYPES: Dict[str, Type[Any]] = {c.TYPE: c for c in (WalkCommand, HeadCommand, State, FrameMeta, Info, Truth)}
+MESSAGE_TYPES: Dict[str, Type[Any]] = {
+    c.TYPE: c for c in (WalkCommand, HeadCommand, LeaseRequest, LeaseReply, State, FrameMeta, Info, Truth)
+}
 M = TypeVar("M")
 
 
@@ -228,14 +269,14 @@ def decode(payload: Union[bytes, bytearray, memoryview], cls: Type[M]) -> M:
     """Strictly decode a JSON message of class ``cls`` (raises ProtocolError)."""
     if len(payload) > MAX_JSON_BYTES:
         raise ProtocolError("oversize", f"{cls.TYPE}: {len(payload)} bytes > {MAX_JSON_BYTES}")
-    return _from_json(bytes(payload), cls)
+    return _guarded(bytes(payload), cls)
 
 
 def decode_any(payload: Union[bytes, bytearray, memoryview]) -> Any:
     """Decode a JSON message of whatever type it declares (raises ProtocolError)."""
     if len(payload) > MAX_JSON_BYTES:
         raise ProtocolError("oversize", f"{len(payload)} bytes > {MAX_JSON_BYTES}")
-    return _from_json(bytes(payload), None)
+    return _guarded(bytes(payload), None)
 
 
 def encode_frame(meta: FrameMeta, jpeg: bytes) -> bytes:
@@ -261,7 +302,7 @@ def decode_frame(payload: Union[bytes, bytearray, memoryview]) -> Frame:
     if start + meta_len > len(data):
         raise ProtocolError("encoding", f"frame: meta length {meta_len} runs past the end ({len(data)} bytes)")
     meta_json = data[start : start + meta_len]
-    meta = _from_json(meta_json, FrameMeta)
+    meta = _guarded(meta_json, FrameMeta)
     jpeg = data[start + meta_len :]
     if not jpeg.startswith(_JPEG_SOI):
         raise ProtocolError("encoding", "frame: image bytes do not start with a JPEG start-of-image marker")
@@ -277,6 +318,19 @@ def _finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise ProtocolError("non_finite", f"{text[:20]} overflows to {value}")
     return value
+
+
+def _guarded(data: bytes, cls: Optional[type]) -> Any:
+    """:func:`_from_json`, with every other exception of the parser and converter as a ProtocolError."""
+    expected = cls.TYPE if cls is not None else "message"
+    try:
+        return _from_json(data, cls)
+    except ProtocolError:
+        raise
+    except RecursionError:
+        raise ProtocolError("encoding", f"{expected}: nested too deeply") from None
+    except (OverflowError, ValueError, TypeError, ArithmeticError) as exc:
+        raise ProtocolError("bad_value", f"{expected}: {type(exc).__name__}: {str(exc)[:100]}") from None
 
 
 def _from_json(data: bytes, cls: Optional[type]) -> Any:
@@ -307,6 +361,11 @@ def _from_json(data: bytes, cls: Optional[type]) -> Any:
     if unknown:
         raise ProtocolError("unknown_field", f"{cls.TYPE}: unknown {', '.join(map(str, unknown))}")
     try:
-        return from_mapping(cls, obj, source=cls.TYPE)
+        message = from_mapping(cls, obj, source=cls.TYPE)
     except ConfigError as exc:
-        raise ProtocolError("bad_value", str(exc)) from None
+        raise ProtocolError("bad_value", str(exc)[:200]) from None
+    for name in ("lease", "station"):
+        value = getattr(message, name, "")
+        if value and (len(value) > MAX_ID_CHARS or not (value.isascii() and value.isalnum())):
+            raise ProtocolError("bad_value", f"{cls.TYPE}: {name} must be at most {MAX_ID_CHARS} letters or digits")
+    return message
