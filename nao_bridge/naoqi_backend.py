@@ -51,6 +51,7 @@ import numpy as np
 import qi
 
 from nao_bridge.backend import RobotBackend
+from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
 from nao_core.config import bounds
 from nao_core.naoqi_api import (
@@ -264,6 +265,29 @@ class NaoqiBackend(RobotBackend):
 
     def stop_walking(self) -> None:
         self.motion.stopMove()
+
+    @property
+    def remote(self) -> bool:
+        host = self.url.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
+        return host not in ("127.0.0.1", "localhost", "::1")
+
+    def move_is_active(self) -> bool:
+        return bool(self.motion.moveIsActive())
+
+    def kill_move(self) -> None:
+        self.motion.killMove()
+
+    def rest(self) -> None:
+        self.motion.rest()
+
+    def heartbeat(self, count: int) -> None:
+        self.memory.insertData(HEARTBEAT_KEY, int(count))
+
+    def watchdog_count(self) -> Optional[int]:
+        try:
+            return int(self.memory.getData(WATCHDOG_KEY))
+        except RuntimeError:  # the key does not exist: no watchdog ever ran on this robot
+            return None
 
     def set_head(self, yaw: float, pitch: float, speed_fraction: float) -> None:
         self.motion.setAngles(HEAD_JOINTS, [float(yaw), float(pitch)], float(speed_fraction))

@@ -101,6 +101,10 @@ class ALMotion:
         self._record("ALMotion.moveIsActive")
         return bool(self._world.is_walking())
 
+    def killMove(self) -> None:
+        self._record("ALMotion.killMove")
+        self._world.stop_walking()
+
     def setAngles(self, names: Any, angles: Any, fraction: float) -> None:
         self._record("ALMotion.setAngles", names, angles, fraction)
         joints = _joint_names(names)
@@ -237,10 +241,19 @@ class ALMemory:
         self._world = world
         self._record = record
         self._subscribers: Dict[str, _MemorySubscriber] = {}
+        self._data: Dict[str, Any] = {}  # written by insertData
         self._lock = threading.Lock()
+
+    def insertData(self, key: str, value: Any) -> None:
+        self._record("ALMemory.insertData", key, value)
+        with self._lock:
+            self._data[key] = value
 
     def getData(self, key: str) -> Any:
         self._record("ALMemory.getData", key)
+        with self._lock:
+            if key in self._data:
+                return self._data[key]
         if key in FALL_KEYS:
             return bool(self._world.is_fallen())
         if key == BATTERY_KEY:
