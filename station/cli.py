@@ -304,7 +304,7 @@ def _transport(args: argparse.Namespace, config: StationConfig, endpoint: str) -
     if args.secure:
         return TransportConfig.secure("station", args.secure, robot=name, connect=(endpoint,), lease_ms=lease)
     if args.insecure:
-        return TransportConfig.with_credentials("station", connect=(endpoint,), lease_ms=lease, robot=name)
+        return TransportConfig(connect=(endpoint,), lease_ms=lease, robot=name)
     return TransportConfig.with_credentials("station", connect=(endpoint,), lease_ms=lease, robot=name)
 
 
