@@ -66,7 +66,8 @@ predicted within ``color_gate`` px (each landmark claimed once). The best consen
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
 Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); the torso roll
-|delta| <= ``max_roll_sigmas`` sigma_delta (far markers low in one band let the lateral position,
+|delta| <= ``max_roll_sigmas`` ``roll_sigma`` (the walking prior, also while standing, where the
+tight still prior leaves the calibration's apparent roll of a few tenths of a degree) (far markers low in one band let the lateral position,
 the heading and delta trade against each other: a fit that needs a roll far beyond its prior has
 bought its small residuals with a wrong pose, and its covariance, which trusts the prior, hides
 it); position std
@@ -682,9 +683,9 @@ class RobotLocalizer:
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too
             raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
-        if abs(p[3]) > self.params.max_roll_sigmas * self._roll_sigma:
+        if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:
             raise NoFix(f"torso roll {math.degrees(p[3]):.2f} deg of the fit beyond {self.params.max_roll_sigmas:g} sigma "
-                        f"({math.degrees(self._roll_sigma):.2f} deg): pose traded for roll")
+                        f"({math.degrees(self.params.roll_sigma):.2f} deg, walking): pose traded for roll")
         # per-axis residual variance with 3 degrees of freedom used (delta is held by its prior)
         residual_var = 2.0 * len(points) * rms**2 / max(1, 2 * len(points) - 3)
         covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]

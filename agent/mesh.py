@@ -82,8 +82,10 @@ _GREY = (160, 160, 160, 255)
 def colour_vertices(mesh: trimesh.Trimesh, views: Sequence[ColourView]) -> trimesh.Trimesh:
     """``mesh`` with RGBA vertex colours sampled from the best-facing view (module docstring)."""
     n_vertices = len(mesh.vertices)
+    if not n_vertices:
+        return mesh  # an empty model (all carved away) has nothing to colour; empty colours break trimesh's PLY export
     colours = np.tile(np.array(_GREY, dtype=np.uint8), (n_vertices, 1))
-    if not n_vertices or not views:
+    if not views:
         mesh.visual.vertex_colors = colours
         return mesh
     best = np.zeros(n_vertices)

@@ -280,7 +280,7 @@ class Pilot:
                 self.coverage.add(np.asarray(cam))
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
-        self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored)
+        self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0)
 
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, phi: float, delta: Optional[float]) -> None:
         if not self.anchored:

@@ -281,6 +281,38 @@ def test_a_jump_is_rejected_until_it_repeats(params, perception, robot, room):
     assert fix is not None and pose_error(localizer.pose, world.truth()["robot_pose"])[0] < 0.01
 
 
+def test_jumps_that_scatter_never_overturn_the_prior(params, perception, robot, room):
+    """Rejected fixes overturn the prior only when they agree with each other: fixes from poses 0.2 m
+    apart while odometry stands still (wrong fixes scatter so) keep the prior however many come."""
+    world = SimWorld("can", robot, "vga", seed=4)
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, room, camera, perception)
+    localizer._correction, localizer.covariance = (0.5, 0.4, 0.0), np.diag([0.01, 0.01, 0.01]) ** 2  # the prior
+    localizer._odom = (0.0, 0.0, 0.0)
+    for k in range(2 * params.max_rejected_jumps):
+        pose = (-0.5, 0.2 * (k % 2), 0.0)  # 0.2 m: 20 floors of the jump gate's 1 cm fix std, apart
+        world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
+        frame = world.render()
+        assert localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), float(k)) is None
+        assert localizer.pose == pytest.approx((0.5, 0.4, 0.0)) and "jump" in localizer.no_fix_reason
+
+
+def test_a_fit_that_needs_a_roll_beyond_its_prior_is_no_fix(params, perception, robot, room):
+    """T_BC missing a torso roll of 5 walking sigmas (beyond max_roll_sigmas): the fit would trade the
+    pose for it, so there is no fix; half a sigma missing still fixes the pose."""
+    world = SimWorld("can", robot, "vga", seed=4)
+    camera = camera_of(robot, "vga")
+    pose = (-0.5, 0.0, 0.0)
+    world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
+    frame = world.render()
+    localizer = RobotLocalizer(params, room, camera, perception)
+    for sigmas, fixed in ((0.5, True), (params.max_roll_sigmas + 2.0, False)):
+        T_BC = rot_x(sigmas * params.roll_sigma) @ frame.T_BC  # the reported camera misses this roll
+        fix = localizer.measure(frame.image, T_BC, None, params.roll_sigma)
+        assert (fix is not None) is fixed, localizer.no_fix_reason
+    assert "torso roll" in localizer.no_fix_reason
+
+
 @pytest.mark.parametrize(
     "image, error",
     [

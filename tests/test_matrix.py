@@ -159,3 +159,13 @@ def test_matrix_mission_completes_accurately_and_stops(mission):
     # the stop reaches the robot within the bridge's deadman after the final decision (the station
     # sends a zero walk at once; the deadman stops the robot anyway); 1 s margin for a loaded machine
     assert r.stop_delay is not None and r.stop_delay <= BRIDGE.deadman_s + 1.0
+
+
+def test_an_empty_model_is_written_not_raised(tmp_path):
+    """A mission whose carve kept no voxel (a 4 cm box carved away) still writes its model files:
+    trimesh cannot write empty vertex colours, so an empty mesh is left uncoloured."""
+    from agent.mesh import colour_vertices, occupancy_to_mesh, save_mesh
+
+    mesh = colour_vertices(occupancy_to_mesh(np.zeros((4, 4, 4), bool), np.zeros(3), 0.01), [])
+    for suffix in (".ply", ".glb"):
+        assert save_mesh(mesh, tmp_path / f"model{suffix}").exists()
