@@ -20,6 +20,8 @@ from nao_core.protocol import (
     FrameMeta,
     HeadCommand,
     Info,
+    LeaseReply,
+    LeaseRequest,
     ProtocolError,
     RobotKeys,
     State,
@@ -44,12 +46,19 @@ TRUTH = from_mapping(Truth, WORLD.truth())  # what the bridge publishes for the 
 
 
 def samples():
+    """One valid message of every type (lease messages last: tests index the others)."""
+    return _samples() + [LeaseRequest(op="take", station="27f7", lease=""),
+                         LeaseReply(granted=True, lease="0f3a", reason="granted")]
+
+
+def _samples():
     return [
-        WalkCommand(seq=7, vx=0.08, vy=-0.01, omega=0.3, ttl=0.5),
-        HeadCommand(seq=3, yaw=0.4, pitch=-0.1, speed=0.2),
+        WalkCommand(seq=7, vx=0.08, vy=-0.01, omega=0.3, ttl=0.5, lease="0f3a"),
+        HeadCommand(seq=3, yaw=0.4, pitch=-0.1, speed=0.2, lease="0f3a"),
         State(
             stamp=1.7e9, odom=(0.1, -0.2, 0.3), head_yaw=0.1, head_pitch=0.05, walking=True, fallen=False,
             battery=0.8, cmd_age=None, watchdog="walking", rejected={"bad_value": 2}, ignored={},
+            owner="27f7", stop_failures=0, robot_watchdog="off",
         ),
         FrameMeta(
             seq=1, stamp=1.7e9, width=640, height=480, encoding="jpeg", head_yaw=0.2, head_pitch=0.1,
@@ -83,17 +92,17 @@ def test_encoded_messages_validate_against_their_schema(message):
 
 def test_schema_and_decoder_agree_on_bounds_and_fields():
     schema = json_schema(WalkCommand)
-    good = to_dict(WalkCommand(seq=1, vx=0.0, vy=0.0, omega=0.0, ttl=1.0))
+    good = to_dict(WalkCommand(seq=1, vx=0.0, vy=0.0, omega=0.0, ttl=1.0, lease=""))
     for bad in ({**good, "vx": 1.5}, {**good, "extra": 1}, {k: v for k, v in good.items() if k != "ttl"}, {**good, "v": 2}):
         with pytest.raises(jsonschema.ValidationError):
             jsonschema.validate(bad, schema)
         with pytest.raises(ProtocolError):
             decode(json.dumps(bad).encode(), WalkCommand)
-    assert set(MESSAGE_TYPES) == {"cmd.walk", "cmd.head", "state", "frame", "info", "sim.truth"}
+    assert set(MESSAGE_TYPES) == {"cmd.walk", "cmd.head", "lease.request", "lease.reply", "state", "frame", "info", "sim.truth"}
 
 
 def walk_dict(**changes):
-    data = {"v": 1, "type": "cmd.walk", "seq": 1, "vx": 0.05, "vy": 0.0, "omega": 0.1, "ttl": 0.5}
+    data = {"v": 1, "type": "cmd.walk", "seq": 1, "vx": 0.05, "vy": 0.0, "omega": 0.1, "ttl": 0.5, "lease": ""}
     data.update(changes)
     return data
 
@@ -116,9 +125,9 @@ MALFORMED = [
     ("type", json.dumps(drop("type")).encode()),
     ("missing_field", json.dumps(drop("omega")).encode()),
     ("unknown_field", json.dumps(walk_dict(speed=1.0)).encode()),
-    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":NaN,"vy":0,"omega":0,"ttl":0.5}'),
-    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":0,"vy":-Infinity,"omega":0,"ttl":0.5}'),
-    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":0,"vy":0,"omega":1e400,"ttl":0.5}'),
+    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":NaN,"vy":0,"omega":0,"ttl":0.5,"lease":""}'),
+    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":0,"vy":-Infinity,"omega":0,"ttl":0.5,"lease":""}'),
+    ("non_finite", b'{"v":1,"type":"cmd.walk","seq":1,"vx":0,"vy":0,"omega":1e400,"ttl":0.5,"lease":""}'),
     ("bad_value", json.dumps(walk_dict(vx="fast")).encode()),
     ("bad_value", json.dumps(walk_dict(seq=1.5)).encode()),
     ("bad_value", json.dumps(walk_dict(seq=-1)).encode()),
@@ -144,12 +153,12 @@ def test_error_names_the_field():
     with pytest.raises(ProtocolError, match="omega"):
         decode(json.dumps(drop("omega")).encode(), WalkCommand)
     with pytest.raises(ProtocolError, match="speed"):
-        decode(json.dumps({"v": 1, "type": "cmd.head", "seq": 1, "yaw": 0, "pitch": 0, "speed": 0}).encode(), HeadCommand)
+        decode(json.dumps({"v": 1, "type": "cmd.head", "seq": 1, "yaw": 0, "pitch": 0, "speed": 0, "lease": ""}).encode(), HeadCommand)
 
 
 def test_encode_refuses_non_finite_values():
     with pytest.raises(ValueError):
-        encode(WalkCommand(seq=1, vx=float("nan"), vy=0.0, omega=0.0, ttl=1.0))
+        encode(WalkCommand(seq=1, vx=float("nan"), vy=0.0, omega=0.0, ttl=1.0, lease=""))
 
 
 def jpeg_of(image: np.ndarray) -> bytes:
@@ -221,10 +230,25 @@ def test_info_reply_rebuilds_the_robot_model():
 def test_keys_live_under_the_robot_name_and_names_are_checked():
     keys = RobotKeys("nao2")
     assert keys.camera_top == "nao/nao2/camera/top"
-    assert keys.station_alive == "nao/nao2/station/alive"
+    assert keys.station_alive == "nao/nao2/station/alive/*"
+    assert keys.station_token("ab12") == "nao/nao2/station/alive/ab12" and keys.lease == "nao/nao2/lease"
     assert {keys.state, keys.cmd_walk, keys.cmd_head, keys.info, keys.alive, keys.sim_truth} == {
         "nao/nao2/state", "nao/nao2/cmd/walk", "nao/nao2/cmd/head", "nao/nao2/info", "nao/nao2/alive", "nao/nao2/sim/truth",
     }
     for bad in ("", "a/b", "*", "x" * 65):
         with pytest.raises(ValueError):
             RobotKeys(bad)
+
+
+@pytest.mark.parametrize("payload, reason", [
+    (b"[" * 50_000, "encoding"),  # RecursionError inside json
+    (b'{"v":1,"type":"cmd.walk","seq":' + b"9" * 5000 + b',"vx":0,"vy":0,"omega":0,"ttl":1,"lease":""}', "bad_value"),
+    (b'{"v":1,"type":"cmd.walk","seq":1,"vx":' + b"9" * 400 + b',"vy":0,"omega":0,"ttl":1,"lease":""}', "bad_value"),
+    (b'{"v":1,"type":"cmd.walk","seq":1,"vx":0,"vy":0,"omega":0,"ttl":1,"lease":"not hex!"}', "bad_value"),
+])
+def test_every_parser_failure_is_a_protocol_error(payload, reason):
+    with pytest.raises(ProtocolError) as caught:
+        decode(payload, WalkCommand)
+    assert caught.value.reason == reason
+    with pytest.raises(ProtocolError):
+        decode_any(payload)
