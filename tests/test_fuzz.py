@@ -19,7 +19,9 @@ tests/test_fuzz.py``, for ``make fuzz``) run ``LONG_EXAMPLES`` (20,000) random e
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import logging
 import math
 import os
 import re
@@ -30,6 +32,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import pytest
 import yaml
+import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -322,7 +325,7 @@ def test_hostile_commands_through_the_bridge_never_move_the_robot():
     with bridge_on_standin(TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), seed=3, fps=2.0) as (bridge, standin):
         session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         try:
-            token = session.liveliness().declare_token(RobotKeys("nao").station_alive)
+            token = session.liveliness().declare_token(RobotKeys("nao").station_token("fuzzer"))
             assert wait_until(lambda: bridge.station_alive, 5.0)
             head_calls = len(standin.calls_to("ALMotion.setAngles"))
             sent: List[bytes] = []
@@ -341,6 +344,73 @@ def test_hostile_commands_through_the_bridge_never_move_the_robot():
             token.undeclare()
         finally:
             session.close()
+
+
+def _hostile(i: int) -> bytes:
+    """The i-th of a fixed cycle of hostile payloads: the shapes that once escaped the decoder."""
+    walk = '"v":1,"type":"cmd.walk","seq":{},"vx":{},"vy":0,"omega":0,"ttl":1,"lease":"{}"'
+    shapes = [
+        b"[" * (50_000 + i % 7),  # deep nesting: RecursionError in json
+        b'{"a":' * 20_000 + b"1" + b"}" * 20_000,
+        ("{" + walk.format("9" * 5000, 0, "") + "}").encode(),  # > 4300 digits: ValueError
+        ("{" + walk.format(1, "9" * 400, "") + "}").encode(),  # int -> float: OverflowError
+        ("{" + walk.format(1, "1e999", "") + "}").encode(),  # overflows to inf
+        ("{" + walk.format(2**64, 0, "x" * 200) + "}").encode(),  # seq and lease out of bounds
+        bytes((i * 7 + k) % 256 for k in range(64)),  # binary noise
+        b'{"v":1,"type":"cmd.walk"' + b',"x":1' * 5000 + b"}",
+    ]
+    return shapes[i % len(shapes)]
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def test_flood_of_hostile_messages_is_counted_logged_little_and_keeps_memory_flat():
+    """10,000 hostile messages on every key the bridge listens to: 0 crashes, 0 motions, all counted,
+    log under 100 KB (one line per reason per second), memory growth under 10 MB."""
+    count, log_limit, memory_limit = 10_000, 100_000, 10 * 2**20
+    keys = RobotKeys("nao")
+    port = free_port()
+    written = io.StringIO()
+    handler = logging.StreamHandler(written)
+    logger = logging.getLogger("nao_bridge")
+    logger.addHandler(handler)
+    try:
+        with bridge_on_standin(TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), seed=5, fps=2.0) as (bridge, standin):
+            session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+            try:
+                token = session.liveliness().declare_token(keys.station_token("flooder"))
+                assert wait_until(lambda: bridge.station_alive, 5.0)
+                for i in range(200):  # warm-up: allocator and Zenoh buffers reach their working size
+                    session.put(keys.cmd_walk, _hostile(i), congestion_control=zenoh.CongestionControl.BLOCK)
+                assert wait_until(lambda: sum(bridge.rejected.values()) == 200, 20.0)
+                log_before = written.tell()
+                lease_queries, before = 0, 0
+                for i in range(count):
+                    if i == count // 2:  # buffers have grown to their working size: from here on, flat
+                        assert wait_until(lambda: sum(bridge.rejected.values()) == 200 + i, 60.0)
+                        before = _rss_bytes()
+                    payload = _hostile(i)
+                    if i % 50 == 0:  # the lease queryable too (a query is a round trip: fewer of them)
+                        list(session.get(keys.lease, payload=payload, timeout=2.0))
+                        lease_queries += 1
+                    else:
+                        session.put(keys.cmd_walk if i % 2 else keys.cmd_head, payload,
+                                    congestion_control=zenoh.CongestionControl.BLOCK)  # none lost on the way
+                assert wait_until(lambda: sum(bridge.rejected.values()) == 200 + count, 60.0), dict(bridge.rejected)
+                growth, log_bytes = _rss_bytes() - before, written.tell() - log_before
+                assert bridge._threads and all(t.is_alive() for t in bridge._threads), "a bridge thread died"
+                assert standin.calls_to("ALMotion.move") == [] and standin.calls_to("ALMotion.setAngles") == []
+                assert bridge.owner is None and lease_queries == count // 50
+                assert log_bytes < log_limit, log_bytes
+                assert growth < memory_limit, growth
+                token.undeclare()
+            finally:
+                session.close()
+    finally:
+        logger.removeHandler(handler)
 
 
 def _decodes(payload: bytes, cls: type) -> bool:
