@@ -65,12 +65,14 @@ predicted within ``color_gate`` px (each landmark claimed once). The best consen
 ``min_points`` blobs is refined; it must beat every hypothesis with a different pose (more than
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
-Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); the torso roll
-|delta| <= ``max_roll_sigmas`` ``roll_sigma`` (the walking prior, also while standing, where the
-tight still prior leaves the calibration's apparent roll of a few tenths of a degree) (far markers low in one band let the lateral position,
-the heading and delta trade against each other: a fit that needs a roll far beyond its prior has
-bought its small residuals with a wrong pose, and its covariance, which trusts the prior, hides
-it); position std
+Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); a torso roll
+|delta| > ``max_roll_sigmas`` ``roll_sigma`` (the walking prior, also while standing, where the
+tight still prior leaves the calibration's apparent roll of a few tenths of a degree) says the roll
+prior was wrong: the covariance is computed with it widened to sigma_delta = |delta|
+(H_dd += sigma_px^2 / delta^2 - sigma_px^2 / sigma_delta^2). With markers low in one band the
+lateral position, the heading and delta trade against each other and the pose covariance then says
+so (the jump gate, the precision gate and the fusion weigh it); with markers at several heights
+delta is observed and the pose stays precise. Position std
 (larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks), or
 ``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
 prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
@@ -683,9 +685,9 @@ class RobotLocalizer:
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too
             raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
-        if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:
-            raise NoFix(f"torso roll {math.degrees(p[3]):.2f} deg of the fit beyond {self.params.max_roll_sigmas:g} sigma "
-                        f"({math.degrees(self.params.roll_sigma):.2f} deg, walking): pose traded for roll")
+        if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:  # the roll prior was wrong: widen it to |delta|
+            H = H.copy()
+            H[3, 3] += (self.params.pixel_sigma / p[3]) ** 2 - (self.params.pixel_sigma / self._roll_sigma) ** 2
         # per-axis residual variance with 3 degrees of freedom used (delta is held by its prior)
         residual_var = 2.0 * len(points) * rms**2 / max(1, 2 * len(points) - 3)
         covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]

@@ -5,7 +5,9 @@ Phases and transitions (t is the caller's clock, s; the first ``tick`` starts th
     INIT    --head centred (|yaw|, |pitch - init_pitch| <= head_tolerance) or init_timeout--> SEARCH
     SEARCH  --a frame saw the object while the robot is localized--> ACTIVE
             --a frame saw the object, no landmark fix yet--> LOCALIZE
-            head scan: one ``search_dwell`` per yaw of ``search_head_yaws``, then turn in place at
+            head scan: one ``search_dwell`` per yaw of ``search_head_yaws``, counted from the head's
+            arrival there (|yaw - target| <= head_tolerance in a state; a head that has not arrived
+            within init_timeout is taken as there: the scan never hangs), then turn in place at
             ``search_turn_rate`` for at most search_max_turns * 2 pi / search_turn_rate s
     LOCALIZE --a landmark fix--> ACTIVE   (the robot stands; the object is tracked in the odometry
             frame and the caller's head alternates between it and the landmarks)
@@ -122,6 +124,10 @@ class Mission:
         self._t_state = -math.inf
         self._t_object: Optional[float] = None
         self._t_fix: Optional[float] = None
+        self._scan = 0  # index of the head scan's current yaw
+        self._t_target: Optional[float] = None  # when the head was sent to it
+        self._t_arrived: Optional[float] = None  # when the head got there (its dwell starts)
+        self._t_turn: Optional[float] = None  # when the scan ended and the turn in place began
         self.landmark_frames = 0  # frames in which landmarks were detected (fix or not)
         self.frame_failures = 0  # frames in a row a per-frame step failed on
 
@@ -181,11 +187,10 @@ class Mission:
         if self.phase is Phase.INIT:
             if elapsed >= p.init_timeout or self._head_centred():
                 self._enter(Phase.SEARCH, t)
-                elapsed = 0.0
             else:
                 return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(0.0, p.init_pitch))
         if self.phase is Phase.SEARCH:
-            return self._search(t, elapsed)
+            return self._search(t)
         if self.phase is Phase.LOCALIZE:
             if t - self._t_object > p.object_lost_timeout:
                 self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s while waiting for a landmark fix")
@@ -207,13 +212,21 @@ class Mission:
             self._enter(Phase.FINISHED, t)
         return self._stop_decision()
 
-    def _search(self, t: float, elapsed: float) -> Decision:
+    def _search(self, t: float) -> Decision:
         p = self.params
-        scan_time = p.search_dwell * len(p.search_head_yaws)
-        if elapsed < scan_time:
-            yaw = p.search_head_yaws[int(elapsed // p.search_dwell)]
-            return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(yaw, p.init_pitch))
-        if elapsed - scan_time >= p.search_turn_duration:
+        yaws = p.search_head_yaws
+        while self._scan < len(yaws):
+            yaw = yaws[self._scan]
+            if self._t_target is None:
+                self._t_target = t
+            if self._t_arrived is None and (self._head_at(yaw, p.init_pitch) or t - self._t_target >= p.init_timeout):
+                self._t_arrived = t
+            if self._t_arrived is None or t - self._t_arrived < p.search_dwell:
+                return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(yaw, p.init_pitch))
+            self._scan, self._t_target, self._t_arrived = self._scan + 1, None, None
+        if self._t_turn is None:
+            self._t_turn = t
+        if t - self._t_turn >= p.search_turn_duration:
             self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not seen in a head scan and {p.search_max_turns:g} turns "
                       f"(landmarks detected in {self.landmark_frames} frames)")
             return self.tick(t)
@@ -222,10 +235,13 @@ class Mission:
     # helpers ----------------------------------------------------------------------------------
 
     def _head_centred(self) -> bool:
+        return self._head_at(0.0, self.params.init_pitch)
+
+    def _head_at(self, yaw: float, pitch: float) -> bool:
         if self._head is None:
             return False
         tol = self.params.head_tolerance
-        return abs(self._head[0]) <= tol and abs(self._head[1] - self.params.init_pitch) <= tol
+        return abs(self._head[0] - yaw) <= tol and abs(self._head[1] - pitch) <= tol
 
     def _stop_decision(self) -> Decision:
         return Decision(self.phase, walk=(0.0, 0.0, 0.0), stop=True, outcome=self.outcome, reason=self.reason)

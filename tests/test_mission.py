@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import pytest
 
@@ -61,18 +62,60 @@ def test_init_centres_head_then_times_out_into_search():
     assert mission.tick(2.0).phase is Phase.SEARCH  # init_timeout
 
 
+def follow_head(mission: Mission, t: float, t_end: float, lag: float = 0.0, heads: Optional[list] = None) -> Decision:
+    """Tick every DT until t_end with a head that reaches each commanded target ``lag`` s after it
+    changes; the commanded heads are appended to ``heads``."""
+    target, since, decision = None, t, None
+    while t < t_end - 1e-9:
+        decision = mission.tick(t)
+        if heads is not None:
+            heads.append(decision.head)
+        if decision.head != target:
+            target, since = decision.head, t
+        if target is not None and t - since >= lag:
+            mission.on_state(t, fallen=False, walking=False, head_yaw=target[0], head_pitch=target[1])
+        t = round(t + DT, 6)
+    return decision
+
+
 def test_search_scans_head_then_turns_then_gives_up():
     mission = Mission(P)
     mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
     assert mission.tick(0.0).phase is Phase.SEARCH  # head already centred
-    heads = [mission.tick(t).head[0] for t in (0.5, 1.5, 2.5)]
+    # a head that is there one state after each command: one dwell per yaw (plus a tick to report it)
+    heads = [follow_head(mission, 0.0, t).head[0] for t in (0.6, 1.6, 2.6)]
     assert heads == [0.0, 0.5, -0.5]
-    turning = mission.tick(3.5)
-    assert turning.walk == (0.0, 0.0, P.search_turn_rate) and turning.head == (0.0, P.init_pitch)
-    turn_end = 3.0 + 2 * math.pi / P.search_turn_rate
-    assert mission.tick(turn_end - 0.1).phase is Phase.SEARCH
-    d = mission.tick(turn_end + 0.01)
+    d, t = None, 2.6
+    while d is None or d.walk[2] == 0.0:
+        d, t = follow_head(mission, t, t + DT), round(t + DT, 6)
+    turn_start = t - DT
+    assert d.walk == (0.0, 0.0, P.search_turn_rate) and d.head == (0.0, P.init_pitch)
+    assert turn_start <= len(P.search_head_yaws) * (P.search_dwell + DT) + DT
+    assert follow_head(mission, t, turn_start + P.search_turn_duration - DT).phase is Phase.SEARCH
+    d = follow_head(mission, turn_start + P.search_turn_duration - DT, turn_start + P.search_turn_duration + 2 * DT)
     assert d.outcome is Outcome.OBJECT_NOT_FOUND and d.stop and d.phase is Phase.STOPPING
+
+
+def test_each_scan_dwell_counts_from_the_heads_arrival():
+    """A head slower than the dwell still looks search_dwell at every yaw of the scan (it never
+    reached the far side when the dwell ran on the clock); one that never arrives moves on after init_timeout."""
+    lag = 0.7 * P.search_dwell
+    mission = Mission(P)
+    mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
+    mission.tick(0.0)
+    seen: list = []
+    follow_head(mission, 0.0, len(P.search_head_yaws) * (P.search_dwell + lag + DT) + DT, lag, seen)
+    held = {yaw: sum(h == (yaw, P.init_pitch) for h in seen) * DT for yaw in P.search_head_yaws}
+    assert held[P.search_head_yaws[0]] >= P.search_dwell - 1e-6  # already there: the dwell alone
+    assert all(held[yaw] >= P.search_dwell + lag - 1e-6 for yaw in P.search_head_yaws[1:]), held  # travel, then a full dwell
+    assert seen[-1] == (0.0, P.init_pitch)  # then the turn
+    stuck = Mission(P)
+    stuck.tick(0.0)
+    stuck.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
+    assert stuck.tick(P.init_timeout).phase is Phase.SEARCH
+    assert stuck.tick(P.init_timeout + P.search_dwell).head == (P.search_head_yaws[1], P.init_pitch)  # never reported there
+    stuck.tick(P.init_timeout + P.search_dwell + P.init_timeout)  # not there after init_timeout: taken as there
+    assert stuck.tick(P.init_timeout + P.search_dwell + P.init_timeout + P.search_dwell).head == (P.search_head_yaws[2], P.init_pitch)
 
 
 def searching_mission() -> Mission:
@@ -121,7 +164,7 @@ def test_object_not_found_says_what_localization_saw():
     mission = searching_mission()
     for k in range(3):
         mission.on_frame(0.1 * (k + 1), object_seen=False, landmark_fix=False, localized=False, landmarks_seen=True)
-    d = mission.tick(3.0 + 2 * math.pi / P.search_turn_rate + 0.01)
+    d = follow_head(mission, 0.0, len(P.search_head_yaws) * (P.search_dwell + DT) + P.search_turn_duration + 2 * DT)
     assert d.outcome is Outcome.OBJECT_NOT_FOUND and "landmarks detected in 3 frames" in d.reason
 
 
