@@ -18,7 +18,7 @@ asked for (``nao-bridge --insecure``); :func:`exposure` tells whether a configur
 non-loopback interface without authentication. Mutual TLS adds up to three layers:
 
 * TLS with mutual authentication: every link is ``tls/``; both ends present a certificate signed by
-  the lab CA (``tools/make_certs.py``) and reject any other; ``transport/link/protocols`` admits
+  the lab CA (``station make-certs``) and reject any other; ``transport/link/protocols`` admits
   TLS only, so no plain link can be opened or accepted.
 * Optional user/password authentication (``transport/auth/usrpwd``): this side's credentials and
   the ``user:password`` dictionary of the peers it accepts. Zenoh checks them on the listening

@@ -44,14 +44,20 @@ from nao_core.config import CONFIG_DIR, ConfigError, main_error, read_yaml
 from nao_core.protocol import Info
 from nao_core.robot_model import load_robot_model
 from nao_core.transport import TransportConfig
-from station import calibrate, check_layout, logs, pick_colors
+from station import calibrate, certs, check_layout, logs, pick_colors
 from station.config import StationConfig, load_station_config
 from station.launch import BridgeFailed, LocalBridge, wait_for_info
 from station.link import BridgeLink, Received
 from station.mcap_log import LogError, McapLog
 from station.replay import replay
 from station.report import write_report
-from station.result import EXIT_CONFIG, EXIT_FAILURE, build_result, exit_code, write_result
+from station.result import (
+    EXIT_CONFIG,
+    EXIT_FAILURE,
+    build_result,
+    exit_code,
+    write_result,
+)
 from station.run import ControlLoop, RunSummary
 from station.topics import LOG
 
@@ -148,6 +154,7 @@ def parse_args(argv: Optional[List[str]]) -> argparse.Namespace:
     calibrate.add_arguments(command("calibrate", "camera intrinsics from chessboard images, as a --config file"))
     pick_colors.add_arguments(command("pick-colors", "a colour class from sample regions, as a --config file"))
     check_layout.add_arguments(command("check-layout", "predict where the landmarks give fixes on the orbit, with a PNG"))
+    certs.add_arguments(command("make-certs", "a lab CA and the certificates of the bridge, the station and a viewer (--secure)"))
 
     config = command("config", "print the resolved configuration and which file set each key")
     config.add_argument("--config", action="append", default=[], metavar="FILE", help="config override(s), merged in order")
@@ -178,7 +185,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     commands = {
         "start": start, "doctor": doctor.run, "capture": capture.run, "calibrate": calibrate.run,
-        "pick-colors": pick_colors.run, "check-layout": check_layout.run, "config": print_config, "replay": replay_command,
+        "pick-colors": pick_colors.run, "check-layout": check_layout.run, "make-certs": certs.run, "config": print_config, "replay": replay_command,
         "carve": carve_command, "report": report_command,
     }
     try:

@@ -1,6 +1,6 @@
 """Zenoh security on loopback: mutual TLS, user/password and the deny-by-default access control.
 
-Real sessions with certificates made by ``tools/make_certs.py``. Who may do what is measured by
+Real sessions with certificates made by ``station make-certs``. Who may do what is measured by
 counting what arrives: N walk commands from an unauthenticated peer, from a peer whose certificate
 comes from another CA, and from an authenticated viewer without command rights must all be lost
 (0 of N), while the station's N arrive (the control that shows the rig would have seen them).
@@ -37,8 +37,8 @@ from tests.zenoh_peers import (
     take_lease,
     wait_until,
 )
-from tools.make_certs import CertError, make_lab_certificates
-from tools.make_certs import main as make_certs_main
+from station.certs import CertError, make_lab_certificates
+from station.certs import main as make_certs_main
 
 N = 40  # commands per intruder
 KEYS = RobotKeys("nao")

@@ -99,7 +99,7 @@ def _any_state(link: BridgeLink, predicate) -> bool:
 
 def test_secure_bridge_talks_to_the_station_certificate_only(tmp_path):
     certs = tmp_path / "certs"
-    subprocess.run([sys.executable, "-m", "tools.make_certs", "--out", str(certs)], check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "station.cli", "make-certs", "--out", str(certs)], check=True, capture_output=True)
     local = LocalBridge(["--sim", "--secure", str(certs)], tmp_path / "bridge.log")
     try:
         secure = BridgeLink(TransportConfig.secure("station", certs, connect=(local.endpoint,), lease_ms=1000), "nao")

@@ -20,9 +20,9 @@ from nao_core.transport import TransportConfig
 from nao_sim.standin import StandIn
 from nao_sim.world import SimWorld
 from station.launch import free_port
-from tools.make_certs import make_lab_certificates
+from station.certs import make_lab_certificates
 
-__all__ = ["bridge_on_standin", "free_port", "lab_certificates", "station_token", "take_lease", "wait_until"]
+__all__ = ["arm", "bridge_on_standin", "free_port", "lab_certificates", "station_token", "take_lease", "wait_until"]
 
 
 def lab_certificates(folder: Path) -> Path:
@@ -60,6 +60,19 @@ def take_lease(session: zenoh.Session, station: str, keys: RobotKeys = RobotKeys
         if (reply is not None and reply.reason != "no_token") or time.monotonic() > deadline:
             return reply
         time.sleep(0.02)
+
+
+def arm(session: zenoh.Session, keys: RobotKeys = RobotKeys(), timeout: float = 5.0) -> Tuple[str, zenoh.LivelinessToken]:
+    """Arm ``session`` as ``station.link`` does: declare its station token, take the lease.
+
+    Returns the lease secret (every command must carry it) and the token; raises AssertionError
+    naming the bridge's reason when the lease is not granted."""
+    station, token = station_token(session, keys)
+    reply = take_lease(session, station, keys, timeout)
+    if reply is None or not reply.granted:
+        token.undeclare()
+        raise AssertionError(f"the bridge did not grant the lease to {station}: {reply}")
+    return reply.lease, token
 
 
 @contextlib.contextmanager

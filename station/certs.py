@@ -15,7 +15,7 @@ Keys are ECDSA P-256 in PKCS#8; certificates are X.509 v3 with subjectAltName, k
 both TLS server and client extended key usage (with mutual TLS each side proves who it is). The
 access-control policies (``config/zenoh/acl_*.yaml``) name subjects by these common names.
 
-    python -m tools.make_certs --out certs --host nao.local --host 192.168.1.42
+    station make-certs --out certs --host nao.local --host 192.168.1.42
 """
 
 from __future__ import annotations
@@ -107,24 +107,38 @@ def make_lab_certificates(out: Path, hosts: Sequence[str] = (), days: int = 825,
     return sorted(out.iterdir())
 
 
-def main(argv: Optional[List[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m tools.make_certs", description=__doc__.splitlines()[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("certs"), help="output folder (default: certs)")
     parser.add_argument("--host", action="append", default=[],
                         help="a name or address the station uses to reach the robot (repeatable), e.g. nao.local")
-    parser.add_argument("--days", type=int, default=825, help="validity in days (default: 825)")
+    parser.add_argument("--days", type=_positive_days, default=825, help="validity in days (default: 825)")
     parser.add_argument("--force", action="store_true", help="replace a CA and certificates already in --out")
-    args = parser.parse_args(argv)
-    if args.days < 1:
-        parser.error("--days must be at least 1")
+
+
+def _positive_days(text: str) -> int:
+    days = int(text)
+    if days < 1:
+        raise argparse.ArgumentTypeError(f"--days must be at least 1, got {text}")
+    return days
+
+
+def run(args: argparse.Namespace) -> int:
+    """``station make-certs``: exit 0 with the files listed, 1 when openssl or the file system refused."""
     try:
         files = make_lab_certificates(args.out, args.host, args.days, args.force)
     except (CertError, OSError) as exc:
-        print(f"make_certs: {exc}", file=sys.stderr)
+        print(f"make-certs: {exc}", file=sys.stderr)
         return 1
     print("\n".join(str(f) for f in files))
     print("copy ca.pem, bridge.pem and bridge.key to the robot; keep ca.key off the network", file=sys.stderr)
     return 0
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """The same as ``station make-certs`` (kept for ``python -m station.certs``)."""
+    parser = argparse.ArgumentParser(prog="station make-certs", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
 
 
 if __name__ == "__main__":
