@@ -48,7 +48,11 @@ azimuth a) is kept in the odometry frame O, independent of the landmark pose and
     d_R = |q_O - (x, y)_odom|,  b = atan2(q_O - (x, y)_odom) - theta_odom     (latest odometry)
 
 and carried by odometry while the object is out of view (a flat object near the feet leaves the
-bottom of the image before the robot reaches it); the next measured sighting replaces it.
+bottom of the image before the robot reaches it); the next measured sighting replaces it. A
+silhouette cut by the bottom border hides the base the floor distance needs (it is then only an
+upper bound): the next head target in ACTIVE pitches down at least to the capture pitch plus the
+bottom row's angle below the optical axis, pitch >= pitch_c + atan2(r_y, r_z) with r the ray of
+(c_x, H - 1), which puts the old bottom row at the centre and the base back in view.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
 ``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
 (goal reached -> ``mission.on_goal``, the next tick stops the robot), else a new plan (its
@@ -165,6 +169,9 @@ class Pilot:
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._near: Optional[Tuple[float, float]] = None  # the surface point q_O the last measured image gave (odometry frame)
+        self._base_pitch: Optional[float] = None  # least head pitch that brings a bottom-cut base back in view
+        ray = self.camera.pixels_to_rays(np.array([[self.camera.width / 2.0, self.camera.height - 1.0]]))[0]
+        self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._lookout: Optional[Tuple[int, Tuple[float, float]]] = None  # (dwell slot, head target) while looking away
@@ -217,6 +224,8 @@ class Pilot:
             if head is None:
                 head = head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera,
                                    head_at_capture, self.height.aim)
+                if self._base_pitch is not None and head[1] < self._base_pitch:  # the base was cut: look down at it
+                    head = self.robot.head.clamp(head[0], self._base_pitch)
                 self._object_gaze = head
                 decision = Decision(decision.phase, walk=self.command, head=head)
             else:
@@ -260,9 +269,11 @@ class Pilot:
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
             measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
-            self._sighting = None
+            self._sighting = self._base_pitch = None
             if measurement is not None:
                 self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
+                if silhouette.touches_bottom:
+                    self._base_pitch = meta.head_pitch + self._bottom_row_angle
                 self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
                                    self.ekf.x if self.ekf.initialized else None)
                 radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior

@@ -232,3 +232,21 @@ def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypa
     d = pilot.ekf.x[:2] - centre
     d2 = float(d @ np.linalg.solve(pilot.ekf.P[:2, :2] + slack**2 * np.eye(2), d))
     assert d2 <= -2.0 * math.log(0.003), (d2, pilot.ekf.x, centre)  # chi-square, 2 dof, 99.7 % (3 sigma)
+
+
+def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
+    """The estimate 3 m away asks for a near-horizontal head; the last silhouette was cut by the
+    bottom border, so the head pitches down by the bottom row's angle from its capture pitch."""
+    pilot = Pilot(CONFIG, INFO)
+    pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=CONFIG.mission.init_pitch)
+    pilot.mission.tick(0.0)  # head centred: SEARCH
+    pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
+    assert pilot.mission.phase is Phase.ACTIVE
+    pilot.pose = (0.0, 0.0, 0.0)
+    pilot.ekf.initialize((0.05, 0.0, 0.0), 0.0, 0.05)  # 0.05 rad wide: a 0.1 m object ~2 m away
+    free = pilot.handle(Tick(0.2)).decision.head
+    pilot._base_pitch = 0.0 + pilot._bottom_row_angle  # noqa: SLF001 - cut at the bottom, captured at pitch 0
+    low = pilot.handle(Tick(0.3)).decision.head
+    vfov_half = math.atan2(INFO.intrinsics.height / 2.0, INFO.intrinsics.fy)
+    assert free[1] < 0.5 * vfov_half < low[1]
+    assert low == MODEL.head.clamp(free[0], pilot._bottom_row_angle)  # noqa: SLF001
