@@ -21,7 +21,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Sequence, Tuple, Union
+from typing import Any, Dict, Literal, Sequence, Tuple, Union
 
 from agent.carving import CarvingParams
 from agent.head_servo import HeadServoParams
@@ -36,19 +36,19 @@ from nao_core.landmark_map import LandmarkMap, load_landmark_map
 
 @dataclass(frozen=True)
 class StationParams:
-    robot_name: str = "nao"
-    port: int = field(default=7447, metadata=bounds(1, 65535))
-    resolution: str = "qvga"
-    landmark_map: str = "landmarks/sim_room.yaml"
-    control_period: float = field(default=0.1, metadata=bounds(0.01, 0.25))
-    walk_ttl: float = field(default=0.3, metadata=bounds(0.05, 2.0))
-    head_speed: float = field(default=0.25, metadata=bounds(0.01, 1.0))
-    lease_ms: int = field(default=1000, metadata=bounds(200, 60000))
-    bridge_timeout: float = field(default=20.0, metadata=bounds(1.0, 600.0))
-    flush_interval: float = field(default=1.0, metadata=bounds(0.05, 60.0))
-    keyframe_min_angle: float = field(default=0.17, metadata=bounds(0.0, 3.2))
-    carve_max_position_std: float = field(default=0.02, metadata=bounds(1e-4, 10.0))
-    doctor_min_battery: float = field(default=0.3, metadata=bounds(0.0, 1.0))
+    robot_name: str
+    port: int = field(metadata=bounds(1, 65535))
+    resolution: Literal["qqvga", "qvga", "vga", "4vga"]
+    landmark_map: str
+    control_period: float = field(metadata=bounds(0.01, 0.25))
+    walk_ttl: float = field(metadata=bounds(0.05, 2.0))
+    head_speed: float = field(metadata=bounds(0.01, 1.0))
+    lease_ms: int = field(metadata=bounds(200, 60000))
+    bridge_timeout: float = field(metadata=bounds(1.0, 600.0))
+    flush_interval: float = field(metadata=bounds(0.05, 60.0))
+    keyframe_min_angle: float = field(metadata=bounds(0.0, 3.2))
+    carve_max_position_std: float = field(metadata=bounds(1e-4, 10.0))
+    doctor_min_battery: float = field(metadata=bounds(0.0, 1.0))
 
 
 SECTIONS: Dict[str, type] = {
