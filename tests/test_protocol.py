@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 
@@ -252,3 +253,21 @@ def test_every_parser_failure_is_a_protocol_error(payload, reason):
     assert caught.value.reason == reason
     with pytest.raises(ProtocolError):
         decode_any(payload)
+
+
+ADDED_STATE_FIELDS = {"owner": None, "stop_failures": 0, "robot_watchdog": "off"}  # issue 14, documented defaults
+
+
+def test_a_state_recorded_before_the_lease_decodes_with_the_documented_defaults():
+    state = samples()[2]
+    old = {k: v for k, v in json.loads(encode(state)).items() if k not in ADDED_STATE_FIELDS}
+    decoded = decode(json.dumps(old).encode(), State)
+    assert {name: getattr(decoded, name) for name in ADDED_STATE_FIELDS} == ADDED_STATE_FIELDS
+    assert decoded == dataclasses.replace(state, **ADDED_STATE_FIELDS)  # every other field as sent
+    # only those fields may be absent: older fields and every command field stay required
+    with pytest.raises(ProtocolError) as err:
+        decode(json.dumps({k: v for k, v in old.items() if k != "watchdog"}).encode(), State)
+    assert err.value.reason == "missing_field"
+    with pytest.raises(ProtocolError) as err:
+        decode(json.dumps(drop("lease")).encode(), WalkCommand)
+    assert err.value.reason == "missing_field"

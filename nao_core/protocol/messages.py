@@ -1,7 +1,8 @@
 """Protocol messages: JSON objects (state, commands, info, truth) and the binary frame envelope.
 
 Every message carries ``"v": PROTOCOL_VERSION`` and ``"type"``. JSON messages are UTF-8 objects
-with exactly the fields of their dataclass (plus ``v`` and ``type``). A frame is::
+with exactly the fields of their dataclass (plus ``v`` and ``type``); a field with a default (only
+``State``'s fields added after the first logs) may be absent and then takes its default. A frame is::
 
     b"NAOF" | version: u8 | meta_len: u32 little-endian | meta JSON (FrameMeta) | JPEG bytes
 
@@ -157,9 +158,12 @@ class State:
     watchdog: Watchdog  # why the robot is (not) walking
     rejected: Dict[str, int] = field(metadata=bounds(0))  # malformed messages per ProtocolError reason
     ignored: Dict[str, int] = field(metadata=bounds(0))  # valid commands not acted on, per cause
-    owner: Optional[str]  # station id holding the lease, None when nobody does
-    stop_failures: int = field(metadata=bounds(0))  # stop attempts that failed or were not confirmed
-    robot_watchdog: Literal["off", "ok", "missing"]  # the watchdog process on the robot (nao_bridge.watchdog)
+    # Added with the lease and confirmed stops (issue 14). The bridge always sends them; a state
+    # recorded before (an older log) lacks them and decodes with these defaults: no owner, no stop
+    # failure, no robot-side watchdog ("off").
+    owner: Optional[str] = None  # station id holding the lease, None when nobody does
+    stop_failures: int = field(default=0, metadata=bounds(0))  # stop attempts that failed or were not confirmed
+    robot_watchdog: Literal["off", "ok", "missing"] = "off"  # the watchdog process on the robot (nao_bridge.watchdog)
 
 
 @dataclass(frozen=True)
@@ -354,7 +358,9 @@ def _from_json(data: bytes, cls: Optional[type]) -> Any:
     elif kind != cls.TYPE:
         raise ProtocolError("type", f"type {kind!r}, expected {cls.TYPE!r}")
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    missing = sorted(names - set(obj))
+    required = {f.name for f in dataclasses.fields(cls)
+                if f.init and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}
+    missing = sorted(required - set(obj))
     if missing:
         raise ProtocolError("missing_field", f"{cls.TYPE}: missing {', '.join(missing)}")
     unknown = sorted(set(obj) - names)
