@@ -28,7 +28,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 import pytest
@@ -170,8 +170,8 @@ def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
     return np.array(numbers)
 
 
-def tampered_copy(src: Path, dst: Path, topic: str, rank: int) -> None:
-    """Copy an MCAP log, changing the walk command of the ``rank``-th message on ``topic``."""
+def rewritten_copy(src: Path, dst: Path, topic: str, change: Callable[[int, bytes], bytes]) -> None:
+    """Copy an MCAP log, the ``i``-th message on ``topic`` replaced by ``change(i, its bytes)``."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -186,13 +186,21 @@ def tampered_copy(src: Path, dst: Path, topic: str, rank: int) -> None:
                 channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
             data = message.data
             if channel.topic == topic:
-                if seen == rank:
-                    payload = json.loads(data)
-                    payload["walk"] = [0.5, 0.0, 0.5]
-                    data = json.dumps(payload, separators=(",", ":")).encode()
+                data = change(seen, data)
                 seen += 1
             writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
         writer.finish()
+
+
+def tampered_copy(src: Path, dst: Path, topic: str, rank: int) -> None:
+    """Copy an MCAP log, changing the walk command of the ``rank``-th message on ``topic``."""
+
+    def tamper(i: int, data: bytes) -> bytes:
+        if i != rank:
+            return data
+        return json.dumps({**json.loads(data), "walk": [0.5, 0.0, 0.5]}, separators=(",", ":")).encode()
+
+    rewritten_copy(src, dst, topic, tamper)
 
 
 def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
@@ -205,6 +213,23 @@ def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
     assert not result.ok
     assert (result.divergence.topic, result.divergence.rank) == (DECISION, 40)
     assert '"walk":[0.5,0.0,0.5]' in result.divergence.recorded
+
+
+def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(sim_mission, tmp_path):
+    """States logged before issue 14 lack owner, stop_failures and robot_watchdog: they decode with
+    their documented defaults (nao_core.protocol.State), so replay compares outputs, not 'unreadable'."""
+    from station.replay import replay
+
+    run, _, _ = sim_mission
+    added = ("owner", "stop_failures", "robot_watchdog")
+    old = tmp_path / "old_states.mcap"
+    rewritten_copy(run / "run.mcap", old, STATE,
+                   lambda _, data: json.dumps({k: v for k, v in json.loads(data).items() if k not in added}).encode())
+    assert all(not set(added) & set(m.json()) for m in read_log(old, topics={STATE}))
+    current, result = replay(run / "run.mcap"), replay(old)
+    assert result.unreadable is None, result.unreadable
+    assert result.inputs == current.inputs and result.compared == current.compared > 0
+    assert result.ok == current.ok  # the pilot reads none of the added fields: the same outputs
 
 
 def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission, tmp_path):
