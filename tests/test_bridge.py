@@ -58,21 +58,30 @@ def bridge_params(port: int, **changes) -> BridgeParams:
     return dataclasses.replace(params, transport=transport, resolution="qvga", **changes)
 
 
+OPEN_STATIONS: List["Station"] = []
+
+
+@pytest.fixture(autouse=True)
+def close_stations():
+    """Every Station a test opened is closed, whether the test passed or not: a Zenoh session left
+    open keeps its subscribers' callback threads (not daemons) waiting, and the interpreter never exits."""
+    yield
+    while OPEN_STATIONS:
+        OPEN_STATIONS[-1].close()
+
+
 class Station:
     """The station's side of the protocol, as small as a test needs."""
 
     def __init__(self, port: int, name: str = "nao", credentials: bool = False, ready: float = WAIT):
         """Connect, subscribe, wait up to ``ready`` s for the bridge's liveliness token, take the lease.
-        On any failure the session is closed (a test that fails here leaks nothing)."""
+        Closed by the ``close_stations`` fixture at the latest, even when this fails."""
         self.keys = RobotKeys(name)
         endpoint = (f"tcp/127.0.0.1:{port}",)
         self.session = open_session(TransportConfig.with_credentials("station", connect=endpoint, robot=name)
                                     if credentials else TransportConfig(connect=endpoint, lease_ms=1000, robot=name))
-        try:
-            self._start(ready)
-        except BaseException:
-            self.session.close()
-            raise
+        OPEN_STATIONS.append(self)
+        self._start(ready)
 
     def _start(self, ready: float) -> None:
         self.states: List[State] = []
@@ -121,7 +130,10 @@ class Station:
         return self.states[-1]
 
     def close(self) -> None:
-        self.session.close()
+        """Close the session (its subscribers and their threads); idempotent."""
+        if self in OPEN_STATIONS:
+            OPEN_STATIONS.remove(self)
+            self.session.close()
 
 
 @pytest.fixture
