@@ -51,8 +51,8 @@ import numpy as np
 import qi
 
 from nao_bridge.backend import RobotBackend
-from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
+from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_core.config import bounds
 from nao_core.naoqi_api import (
     BATTERY_KEY,
@@ -74,18 +74,18 @@ log = logging.getLogger(__name__)
 class NaoqiParams:
     """NAOqi options of the bridge (``bridge.naoqi`` in config/bridge.yaml)."""
 
-    color_space: Literal["yuv422", "bgr"] = "yuv422"
-    disable_autonomous_life: bool = True
-    stand_init_at_start: bool = True
-    stand_init_speed: float = field(default=0.5, metadata=bounds(0.05, 1.0))
-    rest_on_exit: bool = True
-    use_sensors: bool = True  # odometry and head angles from sensors rather than commands
-    clock_window: int = field(default=100, metadata=bounds(1, 100000))  # frames in the offset minimum
-    camera_latency_min: float = field(default=0.0, metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
-    kinematics_rate: float = field(default=50.0, metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
-    kinematics_history: float = field(default=2.0, metadata=bounds(0.2, 60.0))  # s of samples kept
-    kinematics_max_gap: float = field(default=0.1, metadata=bounds(0.001, 5.0))  # s, widest gap interpolated over
-    client_name: str = "nao_active_recon"
+    color_space: Literal["yuv422", "bgr"]
+    disable_autonomous_life: bool
+    stand_init_at_start: bool
+    stand_init_speed: float = field(metadata=bounds(0.05, 1.0))
+    rest_on_exit: bool
+    use_sensors: bool  # odometry and head angles from sensors rather than commands
+    clock_window: int = field(metadata=bounds(1, 100000))  # frames in the offset minimum
+    camera_latency_min: float = field(metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
+    kinematics_rate: float = field(metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
+    kinematics_history: float = field(metadata=bounds(0.2, 60.0))  # s of samples kept
+    kinematics_max_gap: float = field(metadata=bounds(0.001, 5.0))  # s, widest gap interpolated over
+    client_name: str
 
 
 def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes, bytearray, str]) -> np.ndarray:

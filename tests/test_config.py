@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from pathlib import Path
 
 import pytest
@@ -79,3 +81,36 @@ def test_landmark_map_rules(tmp_path):
     dup = write(tmp_path, "landmarks:\n  - {id: a, kind: color, color: red, position: [0,0,0]}\n  - {id: a, kind: color, color: red, position: [1,0,0]}\n")
     with pytest.raises(ConfigError, match="duplicate landmark id 'a'"):
         load_landmark_map(dup)
+
+
+def _defaulted_fields(cls: type, path: str, seen: set) -> list:
+    """Dotted names of the fields that carry a value in code, through nested config dataclasses."""
+    if cls in seen:
+        return []
+    seen.add(cls)
+    found = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
+            found.append(f"{path}.{f.name}")
+        for candidate in (hints[f.name], *typing.get_args(hints[f.name])):
+            if dataclasses.is_dataclass(candidate):
+                found += _defaulted_fields(candidate, f"{path}.{f.name}", seen)
+    return found
+
+
+# Not defaults of a config file: the transport is built from command-line flags (nao_core.transport),
+# and a scenario part's yaw and mesh are optional per part (a cylinder has neither).
+NOT_FROM_A_FILE = ("bridge.transport", "sim.scenarios.parts.yaw", "sim.scenarios.parts.mesh")
+
+
+def test_defaults_live_in_the_yaml_files_only():
+    """Every section's defaults come from config/*.yaml: no dataclass carries a second, possibly different, value."""
+    from nao_bridge.bridge import BridgeParams
+    from nao_core.robot_model import RobotModel
+    from nao_sim.scenarios import SimConfig
+    from station.config import SECTIONS
+
+    sections = {**SECTIONS, "bridge": BridgeParams, "robot": RobotModel, "sim": SimConfig}
+    defaulted = [name for section, cls in sections.items() for name in _defaulted_fields(cls, section, set())]
+    assert [name for name in defaulted if not name.startswith(NOT_FROM_A_FILE)] == []

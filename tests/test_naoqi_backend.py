@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from nao_bridge.bridge import BridgeParams
 from nao_bridge.capture_kinematics import (
     AFTER,
     BEFORE,
@@ -23,9 +24,9 @@ from nao_bridge.naoqi_backend import (
     COLOR_SPACE_IDS,
     ClockOffset,
     NaoqiBackend,
-    NaoqiParams,
     image_to_bgr,
 )
+from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
 from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.scenarios import load_sim_config
@@ -33,6 +34,7 @@ from nao_sim.standin import CameraDelivery, StandIn
 from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
+NAOQI_PARAMS = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi  # the shipped defaults
 SIM = load_sim_config()
 BGR, YUV422 = COLOR_SPACE_IDS["bgr"], COLOR_SPACE_IDS["yuv422"]
 FPS = 15.0
@@ -143,7 +145,7 @@ def standin():
 
 
 def backend_for(standin: StandIn, **changes) -> NaoqiBackend:
-    return NaoqiBackend(standin.url, MODEL, dataclasses.replace(NaoqiParams(), **changes), "qvga", FPS)
+    return NaoqiBackend(standin.url, MODEL, dataclasses.replace(NAOQI_PARAMS, **changes), "qvga", FPS)
 
 
 def test_start_prepares_the_robot_and_close_releases_it(standin):
@@ -340,7 +342,7 @@ def test_walk_head_state_and_fall_signal(standin):
 
 
 def test_unreachable_robot_is_a_connection_error_naming_the_url():
-    backend = NaoqiBackend("tcp://127.0.0.1:9", MODEL, NaoqiParams(), "qvga", 15.0)
+    backend = NaoqiBackend("tcp://127.0.0.1:9", MODEL, NAOQI_PARAMS, "qvga", 15.0)
     with pytest.raises(ConnectionError, match="tcp://127.0.0.1:9"):
         backend.start()
     backend.close()
@@ -348,7 +350,7 @@ def test_unreachable_robot_is_a_connection_error_naming_the_url():
 
 def test_unknown_resolution_is_refused():
     with pytest.raises(KeyError, match="hd"):
-        NaoqiBackend("tcp://127.0.0.1:9", MODEL, NaoqiParams(), "hd", 15.0)
+        NaoqiBackend("tcp://127.0.0.1:9", MODEL, NAOQI_PARAMS, "hd", 15.0)
 
 
 def test_a_failing_sampler_read_drops_frames_until_it_recovers():
