@@ -48,7 +48,9 @@ azimuth a) is kept in the odometry frame O, independent of the landmark pose and
     d_R = |q_O - (x, y)_odom|,  b = atan2(q_O - (x, y)_odom) - theta_odom     (latest odometry)
 
 and carried by odometry while the object is out of view (a flat object near the feet leaves the
-bottom of the image before the robot reaches it); the next measured sighting replaces it. A
+bottom of the image before the robot reaches it); the next measured sighting replaces it, unless
+it is cut by the bottom border (its distance is then only an upper bound) and the kept point is
+nearer. A
 silhouette cut by the bottom border hides the base the floor distance needs (it is then only an
 upper bound): the next head target in ACTIVE pitches down at least to the capture pitch plus the
 bottom row's angle below the optical axis, pitch >= pitch_c + atan2(r_y, r_z) with r the ray of
@@ -279,7 +281,10 @@ class Pilot:
                 radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior
                 distance = image_distance(silhouette, measurement.delta, float(radius), self.camera, T_WC)
                 if distance is not None:
-                    self._near = _surface_point(meta.odom, T_BC, distance, measurement.azimuth - self.pose[2])
+                    near = _surface_point(meta.odom, T_BC, distance, measurement.azimuth - self.pose[2])
+                    if not (silhouette.touches_bottom and self._near is not None
+                            and math.dist(self._near, meta.odom[:2]) < math.dist(near, meta.odom[:2])):
+                        self._near = near  # a bottom-cut view (an upper bound) never replaces a nearer point
         if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
