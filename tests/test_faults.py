@@ -361,10 +361,11 @@ def test_station_process_killed_mid_walk_stops_the_robot_and_leaves_a_readable_l
     with pytest.warns(UserWarning, match="incomplete MCAP"):
         stamps = sorted(m.t for m in read_log(log))
     # the loop flushes at the end of a pass once flush_interval has passed: what a kill loses is at most
-    # that interval plus one pass (the longest this run logged, on however loaded a machine) and scheduling
+    # that interval plus one pass (the longest this run logged, on however loaded a machine) and the
+    # scheduling of a process on a loaded 2-core machine (1 s: seen 0.5 s late with the suite running)
     flush_interval = load(StationParams, [CONFIG_DIR / "station.yaml"], section="station").flush_interval
     longest_pass = max(later - earlier for earlier, later in zip(stamps, stamps[1:]))
-    assert killed - stamps[-1] <= flush_interval + longest_pass + 0.3, (killed - stamps[-1], longest_pass)
+    assert killed - stamps[-1] <= flush_interval + longest_pass + 1.0, (killed - stamps[-1], longest_pass)
     for command in (["report", str(log), "-o", str(tmp_path / "report")], ["replay", str(log)]):
         done = subprocess.run([PY, "-m", "station.cli", *command], capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, (command, done.stderr[-2000:])

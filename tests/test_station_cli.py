@@ -167,8 +167,11 @@ def test_doctor_through_naoqi_on_the_standin(tmp_path):
 
     from station.launch import free_port
 
+    from station.config import load_station_config
+
     url = f"tcp://127.0.0.1:{free_port()}"
-    standin = subprocess.Popen([sys.executable, "-m", "nao_sim.standin", "--listen", url, "--resolution", "qvga"],
+    resolution = load_station_config([]).station.resolution  # the camera mode the doctor's bridge asks for
+    standin = subprocess.Popen([sys.executable, "-m", "nao_sim.standin", "--listen", url, "--resolution", resolution],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         for _ in range(600):  # readiness: until a libqi session connects
