@@ -1,6 +1,6 @@
 """Zenoh sessions for the bridge, the station and viewers: one place that turns options into a zenoh.Config.
 
-Practice (DESIGN.md, checked with eclipse-zenoh 1.10): peer mode on every side, multicast and gossip
+Practice (docs/security.md and docs/protocol.md, checked with eclipse-zenoh 1.10): peer mode on every side, multicast and gossip
 scouting off, explicit listen (bridge) and connect (station, viewer) endpoints, and a short link
 lease (1.5 s, 4 keep-alives per lease) so that a frozen peer is noticed within the lease (its
 liveliness tokens then disappear). Shared-memory transport is off: frames are small, and with it
