@@ -233,6 +233,7 @@ def orbit_poses(scenario, n: int, rng: np.random.Generator):
         yield pose, ROBOT.look_at(pose, target)
 
 
+@pytest.mark.slow  # 17 s of rendering; it holds for the low ring only (other layouts: station check-layout)
 def test_two_markers_in_view_from_anywhere_on_the_orbit():
     rng = np.random.default_rng(0)
     counts = [
