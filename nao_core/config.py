@@ -39,7 +39,7 @@ def _config_dir() -> Path:
     source = Path(__file__).resolve().parent.parent / "config"
     if source.is_dir():
         return source
-    return Path(str(importlib.resources.files("nao_core.defaults")))
+    return Path(str(importlib.resources.files("nao_core") / "defaults"))
 
 
 CONFIG_DIR = _config_dir()
