@@ -116,7 +116,15 @@ import numpy as np
 from agent.camera import CameraModel
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
-from nao_core.geometry import Pose, camera_in_world, compose, invert, relative, rot_x, wrap_angle
+from nao_core.geometry import (
+    Pose,
+    camera_in_world,
+    compose,
+    invert,
+    relative,
+    rot_x,
+    wrap_angle,
+)
 from nao_core.landmark_map import Landmark, LandmarkMap
 
 
@@ -1104,3 +1112,21 @@ def _check_pose(pose: object, name: str) -> Pose:
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"{name} must be three finite numbers (x, y, theta), got {pose!r}")
     return values  # type: ignore[return-value]
+
+
+def landmarks_in_image(camera: CameraModel, landmarks: LandmarkMap, T_WC: np.ndarray, margin: float = 3.0) -> int:
+    """How many landmarks are wholly in the image at T_WC: a marker's four corners (facing the camera),
+    a disc with its rim, ``margin`` pixels from the border (tests and the localization benchmark count views by it)."""
+    count = 0
+    for lm in landmarks.landmarks:
+        points = lm.aruco_corners() if lm.kind == "aruco" else np.array([lm.position])
+        uv, front = camera.project_world(points, T_WC)
+        if not front.all():
+            continue
+        pad = margin
+        if lm.kind == "aruco" and np.dot(lm.normal, T_WC[:3, 3] - np.asarray(lm.position)) <= 0:
+            continue
+        if lm.kind == "color":
+            pad += camera.K[0, 0] * lm.diameter / 2 / np.linalg.norm(np.asarray(lm.position) - T_WC[:3, 3])
+        count += bool(np.all(uv >= pad) and np.all(uv <= np.array([camera.width, camera.height]) - 1 - pad))
+    return count

@@ -15,7 +15,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agent.camera import CameraModel
-from agent.localization import LocalizationParams, RobotLocalizer, head_directions
+from agent.localization import (
+    LocalizationParams,
+    RobotLocalizer,
+    head_directions,
+    landmarks_in_image,
+)
 from agent.perception import ImageError, PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import compose, planar_transform, relative, rot_x, wrap_angle
@@ -49,22 +54,6 @@ def pose_error(pose, truth):
     return math.hypot(pose[0] - truth[0], pose[1] - truth[1]), abs(wrap_angle(pose[2] - truth[2]))
 
 
-def fully_shown(camera: CameraModel, landmarks: LandmarkMap, T_WC: np.ndarray, margin: float = 3.0) -> int:
-    """Landmarks wholly in the image: a marker's four corners (facing the camera), a disc with its rim."""
-    count = 0
-    for lm in landmarks.landmarks:
-        points = lm.aruco_corners() if lm.kind == "aruco" else np.array([lm.position])
-        uv, front = camera.project_world(points, T_WC)
-        if not front.all():
-            continue
-        pad = margin
-        if lm.kind == "aruco" and np.dot(lm.normal, T_WC[:3, 3] - np.asarray(lm.position)) <= 0:
-            continue
-        if lm.kind == "color":
-            pad += camera.K[0, 0] * lm.diameter / 2 / np.linalg.norm(np.asarray(lm.position) - T_WC[:3, 3])
-        count += bool(np.all(uv >= pad) and np.all(uv <= np.array([camera.width, camera.height]) - 1 - pad))
-    return count
-
 
 # -- layouts users make, on rendered frames ------------------------------------------------------
 
@@ -97,7 +86,7 @@ def test_layout_fixes_on_rendered_frames_with_roll_left_out_of_T_BC(params, perc
         truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
         world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
-        if fully_shown(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
+        if landmarks_in_image(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
             continue
         _, predicted = localizer.predicted_fix(truth, frame.T_BC)
         well_posed = predicted is not None and math.sqrt(np.linalg.eigvalsh(predicted[:2, :2])[-1]) <= params.max_position_std / 2

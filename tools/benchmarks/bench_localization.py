@@ -23,11 +23,10 @@ import time
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.localization import LocalizationParams, RobotLocalizer
+from agent.localization import LocalizationParams, RobotLocalizer, landmarks_in_image
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, wrap_angle
-from nao_core.landmark_map import LandmarkMap
 from nao_core.robot_model import load_robot_model
 from nao_sim.scenarios import Room, load_sim_config
 from nao_sim.world import SimWorld
@@ -37,19 +36,6 @@ ROLL = math.radians(0.3)
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
 
-
-def _shown(camera: CameraModel, landmarks: LandmarkMap, T_WC: np.ndarray, margin: float = 3.0) -> int:
-    count = 0
-    for lm in landmarks.landmarks:
-        points = lm.aruco_corners() if lm.kind == "aruco" else np.array([lm.position])
-        uv, front = camera.project_world(points, T_WC)
-        if not front.all() or (lm.kind == "aruco" and np.dot(lm.normal, T_WC[:3, 3] - np.asarray(lm.position)) <= 0):
-            continue
-        pad = margin
-        if lm.kind == "color":
-            pad += camera.K[0, 0] * lm.diameter / 2 / np.linalg.norm(np.asarray(lm.position) - T_WC[:3, 3])
-        count += bool(np.all(uv >= pad) and np.all(uv <= np.array([camera.width, camera.height]) - 1 - pad))
-    return count
 
 
 def _layout(name: str, half_size: float) -> list:
@@ -68,7 +54,7 @@ def _layout(name: str, half_size: float) -> list:
         truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
         world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
-        if _shown(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
+        if landmarks_in_image(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
             continue
         _, predicted = localizer.predicted_fix(truth, frame.T_BC)
         posed = predicted is not None and math.sqrt(np.linalg.eigvalsh(predicted[:2, :2])[-1]) <= params.max_position_std / 2
