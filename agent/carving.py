@@ -195,23 +195,24 @@ def _undistort_maps(K: bytes, dist: bytes, size: Tuple[int, int]) -> Tuple[np.nd
 
 def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
     """The silhouette as seen by the ideal pinhole with the same K (see the module docstring)."""
-    dist = np.asarray(camera.dist, dtype=float).ravel()
-    if not np.any(dist):
+    if not np.any(camera.dist):
         return mask01
-    K = np.asarray(camera.K, dtype=float)
-    map_x, map_y = _undistort_maps(K.tobytes(), dist.tobytes(), (camera.width, camera.height))
-    ideal = cv2.remap(mask01.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+    ideal = _remap_to_pinhole(mask01.astype(np.float32), camera, cv2.BORDER_CONSTANT, 1.0)
     return (ideal >= 0.5).astype(np.uint8)
 
 
 def _pinhole_image(image: np.ndarray, camera: CameraModel) -> np.ndarray:
     """The colour image as seen by the ideal pinhole with the same K (bilinear)."""
-    dist = np.asarray(camera.dist, dtype=float).ravel()
-    if not np.any(dist):
+    if not np.any(camera.dist):
         return image
-    K = np.asarray(camera.K, dtype=float)
+    return _remap_to_pinhole(image, camera, cv2.BORDER_REPLICATE)
+
+
+def _remap_to_pinhole(image: np.ndarray, camera: CameraModel, border: int, border_value: float = 0.0) -> np.ndarray:
+    """Bilinear resampling of a distorted image onto the ideal pinhole (maps cached per camera)."""
+    K, dist = np.asarray(camera.K, dtype=float), np.asarray(camera.dist, dtype=float).ravel()
     map_x, map_y = _undistort_maps(K.tobytes(), dist.tobytes(), (camera.width, camera.height))
-    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=border, borderValue=border_value)
 
 
 def _dilated(silhouette: np.ndarray, radius: int) -> np.ndarray:
