@@ -18,15 +18,28 @@ Services and calls (NAOqi 2.x API):
 * ALAutonomousLife ``setState("disabled")`` and ALRobotPosture ``goToPosture("StandInit", speed)``
   at start, ``rest`` on close, each configurable.
 
-Clocks. Image stamps are the robot's clock. With r_k the bridge time (``time.time()``) at which
-image k was received and s_k its robot stamp, the offset is estimated as
+Clocks. Image stamps are the robot's clock; the bridge's is ``time.time()``. The offset between
+them is measured two ways:
 
-    offset = min_{k in last N frames} (r_k - s_k) - L_min,    capture stamp (bridge clock) = s_k + offset
+* Probe (preferred): the sampler writes a counter to ALMemory (``CLOCK_PROBE_KEY``) between bridge
+  times t0 and t1 and reads the robot's stamp s of that write with ``ALMemory.getTimestamp``. The
+  robot stamped it inside [t0, t1], so
 
-r_k - s_k = true offset + latency_k with latency_k >= L_min (``camera_latency_min``, the camera's
-known shortest capture-to-receive latency, 0 if unknown), so the estimate is late by the smallest
-observed excess latency: stamps are never early, and a clock step on either side is forgotten after
-N frames.
+      offset_j = (t0 + t1) / 2 - s_j,    |error_j| <= (t1 - t0) / 2,
+
+  and of the last ``clock_probe_window`` probes the one with the shortest round trip is kept (NTP's
+  clock filter). Frames are then stamped s_k + offset, independent of the camera's latency.
+* Camera bound: with r_k the bridge time at which image k was received, r_k - s_k = offset +
+  latency_k, latency_k >= L_min (``camera_latency_min``, 0 if unknown), so
+
+      offset_cam = min_{k in last N frames} (r_k - s_k) - L_min
+
+  is never early and is late by the smallest excess latency seen; a clock step is forgotten after N.
+
+The probe is used while it agrees with the camera: the smallest latency it implies,
+min_k (r_k - s_k) - offset_probe, must lie in [-(t1 - t0) / 2, ``camera_latency_max``]. Otherwise
+(ALMemory and the camera stamp on different clocks, or a robot without ``getTimestamp``) frames
+take offset_cam, with one warning naming why.
 
 Capture-time kinematics. NAOqi does not return the joint angles with an image, and the image
 arrives tens of ms after its capture, while the torso rolls and the head turns. A sampler thread
@@ -44,7 +57,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Counter, Deque, List, Literal, Optional, Sequence, Union
+from typing import Any, Counter, Deque, List, Literal, Optional, Sequence, Set, Tuple, Union
 
 import cv2
 import numpy as np
@@ -56,6 +69,7 @@ from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_core.config import bounds
 from nao_core.naoqi_api import (
     BATTERY_KEY,
+    CLOCK_PROBE_KEY,
     COLOR_SPACE_IDS,
     FALL_KEYS,
     FRAME_ROBOT,
@@ -82,6 +96,9 @@ class NaoqiParams:
     use_sensors: bool  # odometry and head angles from sensors rather than commands
     clock_window: int = field(metadata=bounds(1, 100000))  # frames in the offset minimum
     camera_latency_min: float = field(metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
+    camera_latency_max: float = field(metadata=bounds(0.0, 10.0))  # s, longest plausible shortest latency
+    clock_probe_rate: float = field(metadata=bounds(0.0, 100.0))  # Hz of ALMemory clock probes (0: camera only)
+    clock_probe_window: int = field(metadata=bounds(1, 100000))  # probes in the shortest-round-trip choice
     kinematics_rate: float = field(metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
     kinematics_history: float = field(metadata=bounds(0.2, 60.0))  # s of samples kept
     kinematics_max_gap: float = field(metadata=bounds(0.001, 5.0))  # s, widest gap interpolated over
@@ -112,7 +129,32 @@ class ClockOffset:
     def update(self, robot_stamp: float, received: float) -> float:
         """Record one image; return its capture time on the bridge clock."""
         self._samples.append(received - robot_stamp)
-        return robot_stamp + min(self._samples) - self._latency_min
+        return robot_stamp + self.bound - self._latency_min
+
+    @property
+    def bound(self) -> float:
+        """min (r_k - s_k) over the window: the offset is at most this (latencies are not negative)."""
+        return min(self._samples)
+
+
+class ClockProbe:
+    """Robot clock -> bridge clock from stamped writes: of the last ``window`` probes, the one with the
+    shortest round trip gives offset = (t0 + t1) / 2 - s, within half that round trip."""
+
+    def __init__(self, window: int):
+        self._probes: Deque[Tuple[float, float]] = collections.deque(maxlen=window)  # (round trip, offset)
+
+    def add(self, sent: float, answered: float, robot_stamp: float) -> None:
+        """A write sent at bridge time ``sent``, acknowledged at ``answered``, stamped ``robot_stamp`` by the robot."""
+        if answered >= sent:
+            self._probes.append((answered - sent, 0.5 * (sent + answered) - robot_stamp))
+
+    def best(self) -> Optional[Tuple[float, float]]:
+        """(offset, its error bound) of the shortest round trip, or None before the first probe."""
+        if not self._probes:
+            return None
+        round_trip, offset = min(self._probes)
+        return offset, 0.5 * round_trip
 
 
 class NaoqiBackend(RobotBackend):
@@ -132,6 +174,11 @@ class NaoqiBackend(RobotBackend):
         self._fall_links: List[tuple] = []
         self._fallen = threading.Event()
         self._clock = ClockOffset(params.clock_window, params.camera_latency_min)
+        self._probe = ClockProbe(params.clock_probe_window)
+        self._probe_count = 0
+        self._next_probe = -math.inf  # time.monotonic() of the next clock probe; inf once probing failed
+        self.clock_source = "camera"  # "probe" while the probe's offset agrees with the camera bound
+        self._clock_warned: Set[str] = set()
         self._last_stamp: Optional[tuple] = None
         self._closed = False
         self._close_lock = threading.Lock()
@@ -167,6 +214,7 @@ class NaoqiBackend(RobotBackend):
         self._sample_kinematics()  # the first sample precedes every image; a failure here fails the start
         self._sampler = threading.Thread(target=self._sample_loop, name="naoqi-kinematics", daemon=True)
         self._sampler.start()
+        time.sleep(2.0 / self.params.kinematics_rate)  # the history spans the first capture, even one stamped early
         self._camera = self.video.subscribeCamera(
             self.params.client_name,
             TOP_CAMERA,
@@ -190,6 +238,25 @@ class NaoqiBackend(RobotBackend):
         self.kinematics.add(KinematicSample(
             0.5 * (before + after), (float(yaw), float(pitch)), T_nao, (float(odom[0]), float(odom[1]), float(odom[2]))
         ))
+        self._probe_clock()
+
+    def _probe_clock(self) -> None:
+        """A stamped ALMemory write every 1 / ``clock_probe_rate`` s (module docstring, Clocks)."""
+        if self.params.clock_probe_rate <= 0.0 or time.monotonic() < self._next_probe:
+            return
+        self._next_probe = time.monotonic() + 1.0 / self.params.clock_probe_rate
+        self._probe_count += 1
+        sent = time.time()
+        self.memory.insertData(CLOCK_PROBE_KEY, self._probe_count)
+        answered = time.time()
+        try:
+            value, seconds, micros = self.memory.getTimestamp(CLOCK_PROBE_KEY)
+        except Exception as exc:  # noqa: BLE001 - an ALMemory without getTimestamp: the camera bound alone
+            self._next_probe = math.inf
+            log.warning("NAOqi clock probe unavailable (%s): frames stamped by the camera's latency bound", exc)
+            return
+        if int(value) == self._probe_count:  # not overwritten by another client in between
+            self._probe.add(sent, answered, float(seconds) + 1e-6 * float(micros))
 
     def _sample_loop(self) -> None:
         """Sample at ``kinematics_rate`` until close; a failing read is logged (at most once a second) and retried."""
@@ -242,7 +309,7 @@ class NaoqiBackend(RobotBackend):
 
     def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> Optional[CameraFrame]:
         """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
-        stamp = self._clock.update(robot_stamp, received)
+        stamp = self._capture_stamp(robot_stamp, received)
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
         kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
@@ -259,6 +326,26 @@ class NaoqiBackend(RobotBackend):
             T_BC=nao_to_optical(kin.T),
             odom=kin.odom,
         )
+
+    def _capture_stamp(self, robot_stamp: float, received: float) -> float:
+        """The frame's capture time on the bridge clock: by the probe while it agrees with the camera bound."""
+        camera_stamp = self._clock.update(robot_stamp, received)
+        probe = self._probe.best()
+        if probe is None:
+            return camera_stamp
+        offset, error = probe
+        shortest_latency = self._clock.bound - offset
+        if -error - 1e-3 <= shortest_latency <= self.params.camera_latency_max:
+            self.clock_source = "probe"
+            return robot_stamp + offset
+        self.clock_source = "camera"
+        reason = "negative" if shortest_latency < 0.0 else "too long"
+        if reason not in self._clock_warned:
+            self._clock_warned.add(reason)
+            log.warning("NAOqi clock probe disagrees with the camera (shortest latency %.3f s: %s): ALMemory and the "
+                        "camera stamp on different clocks? Frames stamped by the camera's latency bound",
+                        shortest_latency, reason)
+        return camera_stamp
 
     def walk(self, v: float, vy: float, omega: float) -> None:
         self.motion.move(float(v), float(vy), float(omega))

@@ -11,3 +11,4 @@ COLOR_SPACE_IDS = {"yuv422": 9, "bgr": 13}
 HEAD_JOINTS = ["HeadYaw", "HeadPitch"]
 FALL_KEYS = ("robotHasFallen", "ALMotion/RobotIsFalling")
 BATTERY_KEY = "Device/SubDeviceList/Battery/Charge/Sensor/Value"
+CLOCK_PROBE_KEY = "NaoActiveRecon/ClockProbe"  # the bridge writes it and reads its robot stamp (getTimestamp)

@@ -16,7 +16,9 @@ are those of a later instant, as on a real NAO. Asking again before a newer imag
 the same image with the same stamp (a duplicate). The stamp is t_k on the robot's clock, which
 runs ``clock_offset`` seconds ahead of the bridge's; the buffer is latin-1 text in BGR or packed
 YUYV (kYUV422 = 9, 2 bytes a pixel), as requested. Latency, drop rate and clock offset default to
-``noise`` in config/sim.yaml; all draws depend on the seed and the frame index only.
+``noise`` in config/sim.yaml; all draws depend on the seed and the frame index only. ALMemory
+stamps every ``insertData`` on the same robot clock and returns it with ``getTimestamp`` (the
+bridge's clock probe, docs/frames.md).
 
     python -m nao_sim.standin --scenario can      # serve until Ctrl-C, print the URL
 """
@@ -237,17 +239,29 @@ class _MemorySubscriber:
 
 
 class ALMemory:
-    def __init__(self, world: SimWorld, record: _Recorder):
+    def __init__(self, world: SimWorld, record: _Recorder, clock_offset: float):
         self._world = world
         self._record = record
+        self._clock_offset = clock_offset
         self._subscribers: Dict[str, _MemorySubscriber] = {}
         self._data: Dict[str, Any] = {}  # written by insertData
+        self._stamps: Dict[str, float] = {}  # robot clock time of each insertData
         self._lock = threading.Lock()
 
     def insertData(self, key: str, value: Any) -> None:
         self._record("ALMemory.insertData", key, value)
         with self._lock:
             self._data[key] = value
+            self._stamps[key] = time.time() + self._clock_offset
+
+    def getTimestamp(self, key: str) -> list:
+        """[value, seconds, microseconds] of the last write, on the robot's clock (as the images)."""
+        self._record("ALMemory.getTimestamp", key)
+        with self._lock:
+            if key not in self._data:
+                raise RuntimeError(f"ALMemory::getTimestamp: key {key!r} not found")
+            seconds, fraction = divmod(self._stamps[key], 1.0)
+            return [self._data[key], int(seconds), int(fraction * 1e6)]
 
     def getData(self, key: str) -> Any:
         self._record("ALMemory.getData", key)
@@ -314,7 +328,7 @@ class StandIn:
         self.world = world
         self.listen = listen
         self._record = _Recorder()
-        self.memory = ALMemory(world, self._record)
+        self.memory = ALMemory(world, self._record, self.delivery.clock_offset)
         self.video = ALVideoDevice(world, self._record, self.delivery)
         self.services = {
             "ALMotion": ALMotion(world, self._record),

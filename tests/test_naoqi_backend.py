@@ -23,11 +23,13 @@ from nao_bridge.capture_kinematics import (
 from nao_bridge.naoqi_backend import (
     COLOR_SPACE_IDS,
     ClockOffset,
+    ClockProbe,
     NaoqiBackend,
     image_to_bgr,
 )
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
+from nao_core.naoqi_api import CLOCK_PROBE_KEY
 from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import CameraDelivery, StandIn
@@ -38,6 +40,7 @@ NAOQI_PARAMS = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge"
 SIM = load_sim_config()
 BGR, YUV422 = COLOR_SPACE_IDS["bgr"], COLOR_SPACE_IDS["yuv422"]
 FPS = 15.0
+STAMP_ERROR = 0.005  # s: a probed stamp is within half the shortest loopback round trip (ms on a loaded machine)
 
 
 def rotation_angle(A: np.ndarray, B: np.ndarray) -> float:
@@ -91,6 +94,42 @@ def test_clock_offset_forgets_a_clock_step_after_the_window():
     for k in range(20, 31):  # the robot clock steps 5 s back
         stamp = clock.update(95.0 + k, 100.0 + k + 0.01)
     assert stamp == pytest.approx(130.01)  # capture time 130 plus the 10 ms latency
+
+
+def test_clock_probe_keeps_the_shortest_round_trip():
+    probe = ClockProbe(window=3)
+    assert probe.best() is None
+    probe.add(10.0, 10.2, 4.0)  # offset 6.1 +- 0.1
+    probe.add(11.0, 11.02, 5.005)  # offset 6.005 +- 0.01
+    probe.add(12.0, 11.9, 0.0)  # answered before sent (a clock step): ignored
+    assert probe.best() == pytest.approx((6.005, 0.01))
+    for k in range(3):  # the window forgets the short round trip
+        probe.add(20.0 + k, 20.05 + k, 14.0 + k)
+    assert probe.best() == pytest.approx((6.025, 0.025))
+
+
+def test_frames_take_the_probe_only_while_it_agrees_with_the_camera(standin):
+    backend = backend_for(standin, camera_latency_max=0.3)
+    assert backend._capture_stamp(100.0, 50.04) == pytest.approx(50.04)  # no probe yet: the camera bound
+    backend._probe.add(49.0, 49.002, 99.0)  # offset -49.999: the camera's shortest latency 39 ms
+    assert backend._capture_stamp(100.0, 50.04) == pytest.approx(50.001) and backend.clock_source == "probe"
+    backend._probe.add(60.0, 60.0001, 99.0)  # offset -39 s: the frames' latency would be negative
+    assert backend._capture_stamp(101.0, 51.05) == pytest.approx(51.04) and backend.clock_source == "camera"
+
+
+def test_probe_stamps_frames_whose_shortest_latency_is_unknown():
+    """0.2 s late frames, camera_latency_min 0: the camera bound alone is 0.2 s late, the probe is not."""
+    world = SimWorld("can", MODEL, resolution="qvga", seed=8)
+    with StandIn(world, clock_offset=3000.0, latency=LATE) as standin:
+        backend = backend_for(standin)
+        backend.start()
+        for _ in range(6):
+            frame = backend.grab_frame(2.0)
+            assert frame is not None
+            assert abs(frame.stamp - standin.video.captures[-1][1]) <= STAMP_ERROR
+        backend.close()
+    assert backend.clock_source == "probe"
+    assert {c.args[0] for c in standin.calls_to("ALMemory.getTimestamp")} == {CLOCK_PROBE_KEY}
 
 
 def test_clock_offset_subtracts_the_known_minimum_latency():
@@ -186,11 +225,12 @@ def test_frames_are_new_images_with_the_camera_pose_and_stamp_of_their_capture(s
     world.render = lambda at=None: renders.append(render(at)) or renders[-1]
     grabs = [(backend.grab_frame(1.0), standin.video.captures[-1][1]) for _ in range(8)]  # served: the last capture
     backend.close()
+    assert backend.clock_source == "probe"
     assert len({f.stamp for f, _ in grabs}) == len(grabs)  # no duplicate handed out
     assert backend.duplicates > 0  # the backend polls faster than 15 fps and saw repeats
     for frame, stamp in grabs:
         capture = next(r for r in renders if r.stamp == stamp)
-        assert frame.stamp >= capture.stamp - 1e-6  # robot clock 1000 s ahead, corrected; never early
+        assert abs(frame.stamp - capture.stamp) <= STAMP_ERROR  # robot clock 1000 s ahead, corrected by the probe
         assert np.abs(frame.image.astype(int) - capture.image.astype(int)).mean() < 3.0  # YUV422 round trip
         assert np.allclose(frame.T_BC, MODEL.camera_in_robot(0.4, -0.2))
         assert (frame.head_yaw, frame.head_pitch) == pytest.approx((0.4, -0.2))
@@ -206,7 +246,7 @@ def kinematic_errors(standin: StandIn, backend: NaoqiBackend, count: int, latenc
         assert frame is not None
         robot_stamp, capture = standin.video.captures[-1]  # the image just served is this frame's
         assert robot_stamp == pytest.approx(capture + standin.delivery.clock_offset, abs=2e-6)
-        assert frame.stamp >= capture - 1e-6  # never early
+        assert abs(frame.stamp - capture) <= STAMP_ERROR  # the clock probe: within half a loopback round trip
         truth, old = world.kinematics_at(capture), world.kinematics_at(capture + latency_min)
         T_true = nao_to_optical(truth.T_BC_nao)
         errors.append((
@@ -219,8 +259,8 @@ def kinematic_errors(standin: StandIn, backend: NaoqiBackend, count: int, latenc
 
 
 # Frames are served 0.20-0.24 s after their capture: the old bridge, reading the kinematics when the image
-# arrived, was at least 0.20 s late; the capture stamp itself is late only by the smallest excess latency
-# seen (transfer, polling: tens of ms on a loaded machine), so errors are compared with that 0.20 s.
+# arrived, was at least 0.20 s late; the capture stamp itself is off by at most half the clock probe's
+# shortest round trip, so errors are compared with that 0.20 s.
 LATE = (0.20, 0.24)
 
 
@@ -229,7 +269,7 @@ def test_frame_kinematics_are_those_of_the_capture_while_the_head_turns():
     world = SimWorld("can", MODEL, resolution="qvga", seed=4)
     world.teleport(world.true_pose(), head=(-1.5, 0.0))
     with StandIn(world, clock_offset=-250.0, latency=latency) as standin:
-        backend = backend_for(standin, camera_latency_min=latency[0])
+        backend = backend_for(standin)  # the camera's shortest latency unknown: the probe alone
         backend.start()
         world.set_head(1.5, 0.0, 0.1)  # 0.4 rad/s: 3 rad take 7.5 s, longer than the frames below
         errors = kinematic_errors(standin, backend, 12, latency[0])
@@ -249,7 +289,7 @@ def test_frame_kinematics_follow_the_torso_roll_while_walking():
     world = SimWorld("can", MODEL, resolution="qvga", seed=5)
     with StandIn(world, latency=latency) as standin:
         world.walk(MODEL.walk.v_max, 0.0, 0.0)  # full speed: full sway
-        backend = backend_for(standin, camera_latency_min=latency[0])
+        backend = backend_for(standin)
         backend.start()
         # 1.5 s of frames after the walk's lag: the sway's 1 Hz roll and 2 Hz pitch through all phases
         errors = kinematic_errors(standin, backend, int(1.5 * FPS) + 8, latency[0])[8:]
