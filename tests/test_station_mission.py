@@ -28,7 +28,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -141,7 +141,15 @@ def test_sim_mission_kept_its_distance_and_stopped_soon_after_deciding(sim_missi
     assert at_rest[0] - final <= STOP_WITHIN
 
 
-def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission):
+@pytest.fixture(scope="module")
+def sim_replay(sim_mission) -> Tuple[subprocess.CompletedProcess, dict]:
+    """``station replay`` of the mission's log, run once: the process and its JSON report."""
+    run, _, _ = sim_mission
+    replayed = subprocess.run([PY, "-m", "station.cli", "replay", str(run / "run.mcap")], capture_output=True, text=True, timeout=300)
+    return replayed, json.loads(replayed.stdout) if replayed.returncode == 0 else {}
+
+
+def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission, sim_replay):
     run, _, _ = sim_mission
     messages = read_clean(run / "run.mcap")
     topics = {m.topic for m in messages}
@@ -149,9 +157,8 @@ def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission):
     assert last_walk(messages).vx == 0.0 and last_walk(messages).omega == 0.0
     assert not decode([m for m in messages if m.topic == STATE][-1].data, State).walking
     assert [m.json()["phase"] for m in messages if m.topic == DECISION][-1] == "finished"
-    replay = subprocess.run([PY, "-m", "station.cli", "replay", str(run / "run.mcap")], capture_output=True, text=True, timeout=300)
+    replay, report = sim_replay
     assert replay.returncode == 0, replay.stderr[-2000:]
-    report = json.loads(replay.stdout)
     assert report["ok"] and report["decisions"] > 100 and report["divergence"] is None
 
 
@@ -215,7 +222,7 @@ def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
     assert '"walk":[0.5,0.0,0.5]' in result.divergence.recorded
 
 
-def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(sim_mission, tmp_path):
+def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(sim_mission, sim_replay, tmp_path):
     """States logged before issue 14 lack owner, stop_failures and robot_watchdog: they decode with
     their documented defaults (nao_core.protocol.State), so replay compares outputs, not 'unreadable'."""
     from station.replay import replay
@@ -226,10 +233,10 @@ def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(sim_mis
     rewritten_copy(run / "run.mcap", old, STATE,
                    lambda _, data: json.dumps({k: v for k, v in json.loads(data).items() if k not in added}).encode())
     assert all(not set(added) & set(m.json()) for m in read_log(old, topics={STATE}))
-    current, result = replay(run / "run.mcap"), replay(old)
+    current, result = sim_replay[1], replay(old)
     assert result.unreadable is None, result.unreadable
-    assert result.inputs == current.inputs and result.compared == current.compared > 0
-    assert result.ok == current.ok  # the pilot reads none of the added fields: the same outputs
+    assert result.inputs == current["inputs"] and result.compared == current["compared"] > 0
+    assert result.ok == current["ok"]  # the pilot reads none of the added fields: the same outputs
 
 
 def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission, tmp_path):

@@ -13,6 +13,9 @@ true) camera. Measured against the simulator's truth:
   to hold the whole object (``Scenario.contains``: exact for meshes too);
 * minimum clearance: the least horizontal distance from the true robot origin to the object's
   outline, sampled every ``POLL`` s while the mission runs;
+* pose error: median and 95th percentile of |(x, y) - (x_true, y_true)| and of |theta - theta_true|
+  over the anchored poses the station logged (/agent/pose, at each frame's capture stamp), the truth
+  interpolated at that stamp from the same samples (the stand-in's world runs on this clock);
 * the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
   the station's final decision, and
   whether the robot is at rest when the station has exited.
@@ -37,7 +40,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 import yaml
@@ -46,7 +49,7 @@ from nao_sim.randomize import RandomWorld, WorldSpec, random_world
 from nao_sim.standin import StandIn
 from station.config import load_station_config
 from station.mcap_log import read_log
-from station.topics import DECISION
+from station.topics import DECISION, POSE
 from tools.bench import BEGIN, END, section
 
 POLL = 0.02  # s, truth sampling period for the clearance (<= 2 mm of walking at 0.1 m/s)
@@ -65,6 +68,8 @@ class MissionResult:
     radius_error: Optional[float]  # m
     iou: Optional[float]
     min_clearance: float  # m
+    pose_error: Optional[Tuple[float, float]]  # m, median and 95th percentile of the logged poses' position error
+    heading_error: Optional[Tuple[float, float]]  # rad, the same for the heading
     duration: Optional[float]  # s, the station's mission time
     stop_delay: Optional[float]  # s, final decision -> first stop call on the robot
     stopped: bool  # the robot at rest once the station exited
@@ -79,11 +84,13 @@ class _ClearanceMonitor(threading.Thread):
         self._world = world
         self._outline = world.scenario.world_points()[:, :2]
         self.minimum = math.inf
+        self.trace: List[Tuple[float, float, float, float]] = []  # (time, x, y, theta) of the true pose
         self._done = threading.Event()
 
     def run(self) -> None:
         while not self._done.wait(POLL):
-            x, y, _ = self._world.true_pose()
+            x, y, theta = self._world.true_pose()
+            self.trace.append((time.time(), x, y, theta))
             self.minimum = min(self.minimum, float(np.hypot(*(self._outline - (x, y)).T).min()))
 
     def stop(self) -> float:
@@ -106,6 +113,27 @@ def model_iou(voxels: Path, spec: WorldSpec) -> float:
     true = spec.scenario.contains(centres).reshape(model.shape)
     either = np.count_nonzero(model | true)
     return float(np.count_nonzero(model & true) / either) if either else 0.0
+
+
+def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], Optional[Tuple[float, float]]]:
+    """(median, 95th percentile) of the anchored logged poses' position and heading errors (module docstring)."""
+    if len(trace) < 2:
+        return None, None
+    t, x, y, theta = np.asarray(trace).T
+    theta = np.unwrap(theta)
+    position, heading = [], []
+    for message in read_log(log, topics={POSE}):
+        record = message.json()
+        stamp = record.get("stamp")
+        if not record.get("anchored") or stamp is None or not t[0] <= stamp <= t[-1]:
+            continue
+        px, py, ptheta = record["pose"]
+        position.append(math.hypot(px - np.interp(stamp, t, x), py - np.interp(stamp, t, y)))
+        heading.append(abs(math.remainder(ptheta - np.interp(stamp, t, theta), 2.0 * math.pi)))
+    if not position:
+        return None, None
+    stats = lambda v: (float(np.median(v)), float(np.percentile(v, 95)))  # noqa: E731
+    return stats(position), stats(heading)
 
 
 def _final_decision_time(log: Path) -> Optional[float]:
@@ -154,15 +182,21 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
+    pose_error, heading_error = pose_errors(run / "run.mcap", monitor.trace) if (run / "run.mcap").exists() else (None, None)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
-                         centre_error, radius_error, iou, clearance, result.get("duration"), stop_delay, stopped, str(out))
+                         centre_error, radius_error, iou, clearance, pose_error, heading_error, result.get("duration"), stop_delay,
+                         stopped, str(out))
 
 
 def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
+
+
+def _pair(values: Optional[Tuple[float, float]], scale: float) -> str:
+    return "-" if values is None else f"{_fmt(values[0], scale)} / {_fmt(values[1], scale)}"
 
 
 def table(results: List[MissionResult], resolution: str, machine: str = "") -> str:
@@ -193,11 +227,12 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
-        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | clearance (m) | duration (s) | stop after decision (ms) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
-          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_fmt(r.min_clearance, 1, 3)} | {_fmt(r.duration, 1, 0)} | "
-          f"{_fmt(r.stop_delay, 1000, 0)} |" for r in results],
+          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | "
+          f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
+          f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} |" for r in results],
     ]
     if len(done) < len(results):
         lines += ["", "Reasons of the missions that did not complete:", ""]
