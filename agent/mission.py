@@ -163,8 +163,8 @@ class Mission:
         if self.phase is Phase.ACTIVE:
             self._end(t, Outcome.COMPLETED, reason, abort=False)
 
-    def on_bridge_lost(self, t: float) -> None:
-        self._end(t, Outcome.BRIDGE_LOST, "the bridge went away (liveliness token lost)")
+    def on_bridge_lost(self, t: float, reason: str) -> None:
+        self._end(t, Outcome.BRIDGE_LOST, reason)
 
     def on_interrupt(self, t: float, signal_name: str) -> None:
         self._end(t, Outcome.INTERRUPTED, f"interrupted by {signal_name}")

@@ -225,7 +225,7 @@ def connected(args: argparse.Namespace, config: StationConfig, out: Path, timeou
             endpoint = bridge.endpoint
         log.info("connecting to the bridge at %s", endpoint)
         try:
-            link = BridgeLink(_transport(args, config, endpoint), config.station.robot_name)
+            link = BridgeLink(_transport(args, config, endpoint), config.station.robot_name, config.station.watchdog_grace)
         except Exception as exc:  # BridgeUnavailable: the session cannot open
             raise BridgeFailed(str(exc)) from None
         info, info_bytes = wait_for_info(link.fetch_info, timeout, bridge)
@@ -276,7 +276,8 @@ def start(args: argparse.Namespace) -> int:
     try:
         with connected(args, config, out, timeout) as (link, info, info_bytes, bridge):
             if bridge is not None:  # its exit ends the mission at once (the loop sees the bridge lost)
-                bridge.watch(lambda code: (died.append(code), link.inbox.put(Received("bridge_lost", time.time()))))
+                bridge.watch(lambda code: (died.append(code), link.inbox.put(
+                    Received("bridge_lost", time.time(), f"the bridge process exited with code {code}".encode()))))
             link.start()
             if args.resolution and info.resolution != args.resolution:
                 log.warning("--resolution %s ignored: the bridge runs %s", args.resolution, info.resolution)

@@ -45,6 +45,7 @@ class StationParams:
     head_speed: float = field(metadata=bounds(0.01, 1.0))
     lease_ms: int = field(metadata=bounds(200, 60000))
     bridge_timeout: float = field(metadata=bounds(1.0, 600.0))
+    watchdog_grace: float = field(metadata=bounds(0.5, 600.0))  # s a bridge may refuse to walk for want of the robot watchdog
     flush_interval: float = field(metadata=bounds(0.05, 60.0))
     keyframe_min_angle: float = field(metadata=bounds(0.0, 3.2))
     carve_max_position_std: float = field(metadata=bounds(1e-4, 10.0))

@@ -20,6 +20,8 @@ from nao_core.protocol import Frame, State
 from nao_core.protocol.schema import record_schema
 from station.mcap_log import encode_json
 
+LIVELINESS_LOST = "the bridge went away (liveliness token lost)"
+
 
 @dataclass(frozen=True)
 class StateReceived:
@@ -51,6 +53,7 @@ class Replan:
 class BridgeLost:
     KIND: ClassVar[str] = "bridge_lost"
     t: float
+    reason: str = LIVELINESS_LOST
 
 
 @dataclass(frozen=True)
@@ -73,14 +76,16 @@ class JournalEntry:
     t: float
     seq: Optional[int] = None
     signal: Optional[str] = None
+    reason: Optional[str] = None  # bridge_lost: why (older logs: none, the liveliness token)
 
     @classmethod
     def of(cls, event: Event) -> "JournalEntry":
         return cls(event.KIND, event.t, seq=event.frame.meta.seq if isinstance(event, FrameReceived) else None,
-                   signal=event.signal if isinstance(event, Interrupted) else None)
+                   signal=event.signal if isinstance(event, Interrupted) else None,
+                   reason=event.reason if isinstance(event, BridgeLost) else None)
 
     def to_json(self) -> bytes:
-        fields = {"kind": self.kind, "t": self.t, "seq": self.seq, "signal": self.signal}
+        fields = {"kind": self.kind, "t": self.t, "seq": self.seq, "signal": self.signal, "reason": self.reason}
         return encode_json({k: v for k, v in fields.items() if v is not None})
 
     @classmethod

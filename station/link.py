@@ -13,7 +13,9 @@ One owner: :meth:`BridgeLink.start` takes the bridge's lease (first come) and ev
 carries its secret; :meth:`close` hands it back. A lease lost to ``station_lost`` is never taken
 again silently: :meth:`rearm` is the explicit re-arm. A state saying the bridge could not
 confirm a stop (``watchdog == "stop_failed"``) becomes a ``bridge_lost`` event with that reason
-as payload, so the mission aborts.
+as payload, so the mission aborts; so does a bridge that keeps refusing to walk because the
+robot-side watchdog it requires does not answer (``watchdog == "no_robot_watchdog"`` for
+``watchdog_grace`` s): the reason says how to install it or opt out.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import zenoh
 
@@ -52,9 +54,15 @@ class BridgeUnavailable(RuntimeError):
     """The bridge could not be reached, did not answer its info query or refused the lease."""
 
 
+NO_ROBOT_WATCHDOG = ("no_robot_watchdog: the bridge refuses to walk the robot because the robot-side watchdog "
+                     "does not answer; install it (nao-bridge install-watchdog HOST) or start the bridge with "
+                     "--without-watchdog (docs/security.md)")
+
+
 class BridgeLink:
-    def __init__(self, transport: TransportConfig, robot_name: str):
-        """``transport``: connect endpoint(s), lease, and for a lab network TLS (``TransportConfig.secure``)."""
+    def __init__(self, transport: TransportConfig, robot_name: str, watchdog_grace: float = 5.0):
+        """``transport``: connect endpoint(s), lease, and for a lab network TLS (``TransportConfig.secure``);
+        ``watchdog_grace``: s a bridge may refuse to walk for want of the robot-side watchdog."""
         self.endpoint = ", ".join(transport.connect)
         self.keys = RobotKeys(robot_name)
         try:
@@ -69,6 +77,8 @@ class BridgeLink:
         self.station_id = str(self.session.zid())
         self.lease = ""
         self._stop_failed_reported = False
+        self._watchdog_grace = watchdog_grace
+        self._no_watchdog_since: Optional[float] = None  # station clock of the first state in a run saying so
 
     def fetch_info(self, timeout: float) -> Tuple[Info, bytes]:
         """The bridge's info and its bytes as received; retries until ``timeout`` (s)."""
@@ -181,12 +191,21 @@ class BridgeLink:
         received = Received("state", time.time(), sample.payload.to_bytes())
         self.inbox.put(received)
         try:
-            failed = decode(received.payload, State).watchdog == "stop_failed"
+            watchdog = decode(received.payload, State).watchdog
         except ProtocolError:
             return  # the control loop logs and counts it
-        if failed and not self._stop_failed_reported:
+        if watchdog == "no_robot_watchdog":
+            self._no_watchdog_since = self._no_watchdog_since or received.t
+        else:
+            self._no_watchdog_since = None
+        if self._stop_failed_reported:
+            return
+        if watchdog == "stop_failed":
             self._stop_failed_reported = True
             self.inbox.put(Received("bridge_lost", received.t, b"stop_failed: the bridge cannot confirm a stop"))
+        elif self._no_watchdog_since is not None and received.t - self._no_watchdog_since >= self._watchdog_grace:
+            self._stop_failed_reported = True
+            self.inbox.put(Received("bridge_lost", received.t, NO_ROBOT_WATCHDOG.encode()))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         with self._frame_lock:

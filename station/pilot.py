@@ -209,7 +209,7 @@ class Pilot:
         return step
 
     def _on_bridge_lost(self, event: BridgeLost) -> Step:
-        self.mission.on_bridge_lost(event.t)
+        self.mission.on_bridge_lost(event.t, event.reason)
         return Step()
 
     def _on_interrupt(self, event: Interrupted) -> Step:

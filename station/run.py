@@ -52,7 +52,7 @@ from nao_core.protocol import (
 from station import foxglove
 from station.carving_worker import CarvingWorker
 from station.config import StationConfig
-from station.events import BridgeLost, Event, FrameReceived, Interrupted, JournalEntry, Replan, StateReceived, Tick
+from station.events import LIVELINESS_LOST, BridgeLost, Event, FrameReceived, Interrupted, JournalEntry, Replan, StateReceived, Tick
 from station.link import BridgeLink, Received
 from station.mcap_log import McapLog
 from station.outputs import EkfRecord, MeasurementRecord, PoseRecord, Record
@@ -182,7 +182,7 @@ class ControlLoop:
             elif received.kind == "truth":
                 self._raw(TRUTH, received, Truth)
             elif received.kind == "bridge_lost":
-                self._handle(BridgeLost(received.t))
+                self._handle(BridgeLost(received.t, received.payload.decode("utf-8", "replace") or LIVELINESS_LOST))
         for received in self.link.take_frames():
             newest = self._frame_log(received) or newest
         signal_name = self.interrupted()

@@ -24,6 +24,7 @@ from nao_core.landmark_map import LandmarkMap
 from nao_core.protocol import Frame, FrameMeta, Info, State, decode
 from station.config import SECTIONS, StationConfig
 from station.events import (
+    LIVELINESS_LOST,
     BridgeLost,
     Event,
     FrameReceived,
@@ -140,6 +141,6 @@ def _events(entry: JournalEntry, state: Optional[State], frames: Dict[int, Frame
     elif entry.kind == Replan.KIND:
         yield Replan(t)
     elif entry.kind == BridgeLost.KIND:
-        yield BridgeLost(t)
+        yield BridgeLost(t, entry.reason or LIVELINESS_LOST)
     else:
         yield Interrupted(t, entry.signal or "")

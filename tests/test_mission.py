@@ -214,7 +214,7 @@ def keep_seeing(mission: Mission, t: float) -> None:
     "event, outcome",
     [
         (lambda m, t: m.on_state(t, fallen=True, walking=False, head_yaw=0, head_pitch=0), Outcome.FALLEN),
-        (lambda m, t: m.on_bridge_lost(t), Outcome.BRIDGE_LOST),
+        (lambda m, t: m.on_bridge_lost(t, "the bridge went away"), Outcome.BRIDGE_LOST),
         (lambda m, t: m.on_interrupt(t, "SIGTERM"), Outcome.INTERRUPTED),
     ],
 )

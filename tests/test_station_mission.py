@@ -393,6 +393,33 @@ def test_bridge_killed_mid_mission_is_bridge_lost(tmp_path):
     assert "liveliness" in result["reason"]
 
 
+def test_a_bridge_refusing_to_walk_without_the_robot_watchdog_ends_the_mission_saying_how_to_fix_it(tmp_path):
+    """A NAO reached over the network needs the robot-side watchdog (issue 14); a bridge that requires
+    it and does not hear it refuses every walk. The station ends the mission after
+    station.watchdog_grace with that reason instead of waiting out its time limit."""
+    from nao_sim.standin import StandIn
+
+    port, grace = free_port(), 1.0
+    world = SimWorld("can", load_robot_model(), resolution="qvga", seed=3)
+    (tmp_path / "bridge.yaml").write_text("bridge:\n  resolution: qvga\n  robot_watchdog: required\n")
+    with StandIn(world) as standin:
+        bridge = subprocess.Popen([PY, "-m", "nao_bridge.cli", "--naoqi", standin.url, "--listen", f"tcp/127.0.0.1:{port}",
+                                   "--config", str(tmp_path / "bridge.yaml")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        override = write_override(tmp_path / "station.yaml", port)
+        override.write_text(override.read_text().replace("station:\n", f"station:\n  watchdog_grace: {grace}\n"))
+        proc = station("start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"), "--config", str(override),
+                       stderr=tmp_path / "err")
+        try:
+            result = finish(tmp_path, proc, "bridge_lost")
+        finally:
+            proc.kill()
+            bridge.kill()
+        walks = [c for c in standin.calls_to("ALMotion.move") if any(c.args)]
+    assert "no_robot_watchdog" in result["reason"] and "nao-bridge install-watchdog" in result["reason"]
+    assert walks == []  # the robot never walked
+    assert result["duration"] < grace + 30.0  # not the mission's time limit (180 s)
+
+
 @SLOW
 def test_station_killed_takes_its_sim_bridge_down(tmp_path):
     proc = station("start", "--robot", "sim", "--out", str(tmp_path / "run"), stderr=tmp_path / "err")
