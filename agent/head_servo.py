@@ -21,6 +21,11 @@ Measured correction: when the object's silhouette centroid (u, v) was seen with 
 mid-height, since a silhouette cut by the image's bottom border has its centroid above the middle
 and would pull the base further out of view. Then ``robot.head.clamp`` (pitch limits shrink at
 large yaw).
+
+Before an estimate. A silhouette cut by the image's side gives no bearing the filter may use
+(docs/perception.md), so no estimate starts from it; the head then centres the measured centroid,
+(yaw_c - atan2(x_n, 1), pitch_c + atan2(y_n, 1)), which brings the cut side into view (the centroid
+of a cut blob lies inside the object's image, on the way to its middle).
 """
 
 from __future__ import annotations
@@ -102,16 +107,20 @@ def head_target(
 ) -> Tuple[float, float]:
     """(yaw, pitch) that centre the object (x_o, y_o, r), within the head's joint limits.
 
-    Without a pose or an estimate the head looks straight ahead at ``params.search_pitch``. A
-    measured ``centroid_uv`` (with the ``camera`` and the ``head_at_capture`` angles of its frame)
+    Without a pose or an estimate the head centres a measured ``centroid_uv`` or else looks straight
+    ahead at ``params.search_pitch``. A measured ``centroid_uv`` (with the ``camera`` and the ``head_at_capture`` angles of its frame)
     pulls the yaw towards centring it, by ``params.servo_gain``. ``aim_height`` (m; e.g.
     :attr:`ObjectHeight.aim`) replaces the configured ``params.aim_height``.
     """
+    seen = centroid_uv is not None and camera is not None and head_at_capture is not None
     if pose is None or object_x is None:
-        return robot_model.head.clamp(0.0, params.search_pitch)
+        if not seen:
+            return robot_model.head.clamp(0.0, params.search_pitch)
+        horizontal, vertical = object_pixel_direction(camera, centroid_uv)
+        return robot_model.head.clamp(head_at_capture[0] - horizontal, head_at_capture[1] + vertical)
     aim = params.aim_height if aim_height is None else aim_height
     yaw, pitch = robot_model.look_at(pose, (float(object_x[0]), float(object_x[1]), aim))
-    if centroid_uv is not None and camera is not None and head_at_capture is not None and params.servo_gain > 0.0:
+    if seen and params.servo_gain > 0.0:
         horizontal, _ = object_pixel_direction(camera, centroid_uv)
         g = params.servo_gain
         yaw = (1.0 - g) * yaw + g * (head_at_capture[0] - horizontal)

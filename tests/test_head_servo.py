@@ -101,3 +101,15 @@ def test_pitch_follows_the_aim_height_not_a_cut_centroid(params, robot, camera):
     assert low[1] > high[1]  # aiming lower pitches the head further down (NAO pitch is positive down)
     seen_high = (camera.K[0, 2], camera.K[1, 2] - 60.0)  # a centroid high in the image (base cut off)
     assert head_target(robot, pose, obj, params, seen_high, camera, low, aim_height=0.02)[1] == pytest.approx(low[1])
+
+
+def test_before_an_estimate_the_head_centres_a_silhouette_cut_by_the_side(params, robot, camera):
+    """A blob cut by the right border gives no bearing, so no estimate starts; the head must turn right
+    towards it (it once stayed straight ahead for a whole mission, the object half out of view)."""
+    pose, head = (0.0, 0.0, 0.0), (0.0, 0.25)
+    cut = (camera.width - 20.0, camera.K[1, 2] + 30.0)  # near the right edge, below the centre
+    yaw, pitch = head_target(robot, pose, None, params, centroid_uv=cut, camera=camera, head_at_capture=head)
+    horizontal, vertical = math.atan2(cut[0] - camera.K[0, 2], camera.K[0, 0]), math.atan2(30.0, camera.K[1, 1])
+    assert yaw == pytest.approx(-horizontal, abs=1e-3) and yaw < -0.3  # turned right (NAO yaw: left positive)
+    assert pitch == pytest.approx(min(head[1] + vertical, robot.head.pitch_range(yaw)[1]), abs=1e-3)
+    assert head_target(robot, pose, None, params) == robot.head.clamp(0.0, params.search_pitch)  # nothing seen
