@@ -44,10 +44,23 @@ the NumPy level-by-level version of the same walk took 3.5 times the CPU time (d
 
 Incremental = batch. A voxel's fate depends only on how many views say it is empty, whatever
 their order, so adding views one at a time (live) or all at once (offline) gives the same grid.
+
+Consistent tolerance (the final carve). The true object projects exactly onto every silhouette, so
+the hull of consistent views covers each of them: its coverage of view i,
+
+    c_i(k) = |S_i  and  proj(H_k)| / |S_i|     (proj: voxel centres, grown by half a voxel's image),
+
+is near 1 for every i. Keyframe poses off by centimetres (a far, sparse landmark layout) make the
+views disagree: each carves what the others saw, and c_i falls (median 0.4-0.7 in such runs,
+against 0.998 with consistent poses). :func:`carve_consistent` carves once with
+k_max = ``tolerance_max`` (counts are exact up to k_max + 1) and keeps the smallest k from
+``tolerance`` up whose hull has median_i c_i(k) >= ``min_coverage``, else k_max: as tight as the
+views allow, and no tighter.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -83,6 +96,8 @@ class CarvingParams:
     sigma_scale: float = field(metadata=bounds(0.0, 10.0))
     max_height: float = field(metadata=bounds(1e-3, 10.0))
     tolerance: int = field(metadata=bounds(0, 200))
+    tolerance_max: int = field(metadata=bounds(0, 200))  # the final carve's k may grow to this (carve_consistent)
+    min_coverage: float = field(metadata=bounds(0.0, 1.0))  # median share of each silhouette the final hull covers
     octree_levels: int = field(metadata=bounds(0, 10))
     max_voxels: int = field(metadata=bounds(1, 1 << 31))
     dilation: int = field(metadata=bounds(0, 50))
@@ -267,6 +282,8 @@ class VoxelCarver:
             raise ValueError(f"bounds: max {hi.tolist()} must exceed min {lo.tolist()} on every axis")
         if pitch is None:
             pitch = params.pitch if params.cells is None else float(np.max(hi - lo)) / params.cells
+        if params.tolerance_max < params.tolerance:
+            raise ValueError(f"tolerance_max {params.tolerance_max} is below tolerance {params.tolerance}")
         if not (math.isfinite(pitch) and pitch > 0):
             raise ValueError(f"pitch: expected a positive voxel edge in metres, got {pitch}")
         shape = tuple(int(n) for n in np.maximum(np.ceil((hi - lo) / pitch - 1e-9), 1))
@@ -372,6 +389,29 @@ class VoxelCarver:
         self.views_added += 1
         return int(removed)
 
+    def at_tolerance(self, k: int) -> "VoxelCarver":
+        """The same views' hull at a tolerance k <= this carver's (counts are exact up to it): a
+        read-only view sharing this carver's grid (add views to this carver, not to it)."""
+        if not 0 <= k <= self.params.tolerance:
+            raise ValueError(f"tolerance {k}: expected 0 .. {self.params.tolerance} (the carve's own)")
+        view = copy.copy(self)
+        view.params = dataclasses.replace(self.params, tolerance=k)
+        view._plain = None if self._plain is None else self._plain.at_tolerance(k)
+        view._occupancy = None
+        return view
+
+    def silhouette_coverage(self, views: Sequence[View]) -> np.ndarray:
+        """c_i per view: the share of its silhouette (on the pinhole) that the hull's projection covers
+        (module docstring); 1.0 for an empty silhouette."""
+        centres = self.origin + self.pitch * np.argwhere(self.occupancy)
+        coverage = np.ones(len(views))
+        for i, (mask, camera, T_WC) in enumerate(views):
+            silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC)) > 0
+            if silhouette.any():
+                projection = _project_centres(centres, self.pitch, camera, np.asarray(T_WC, dtype=float), silhouette.shape, 0)
+                coverage[i] = np.count_nonzero(silhouette & projection) / np.count_nonzero(silhouette)
+        return coverage
+
     def to_mesh(self) -> trimesh.Trimesh:
         """Closed, smooth mesh of the hull (marching cubes on the smoothed occupancy, agent/mesh.py), world units."""
         mesh = occupancy_to_mesh(self.occupancy, self.origin, self.pitch, self.params.mesh_smoothing)
@@ -427,6 +467,26 @@ def carve(
     return carver
 
 
+def carve_consistent(
+    views: Sequence[View],
+    bounds_min: Sequence[float],
+    bounds_max: Sequence[float],
+    pitch: Optional[float],
+    params: CarvingParams,
+    footprint: Optional[Tuple[float, float, float]] = None,
+    images: Sequence[Optional[np.ndarray]] = (),
+) -> VoxelCarver:
+    """The final carve at the smallest tolerance whose hull covers the silhouettes (module docstring)."""
+    views = list(views)
+    top = carve(views, bounds_min, bounds_max, pitch, dataclasses.replace(params, tolerance=params.tolerance_max),
+                footprint, images)
+    for k in range(params.tolerance, params.tolerance_max):
+        hull = top.at_tolerance(k)
+        if np.median(hull.silhouette_coverage(views)) >= params.min_coverage:
+            return hull
+    return top
+
+
 def refine_poses(views: Sequence[View], bounds_min: Sequence[float], bounds_max: Sequence[float],
                  params: CarvingParams, footprint: Optional[Tuple[float, float, float]] = None) -> List[View]:
     """Keyframe poses refined by silhouette consistency (leave one out), before the final carve.
@@ -460,20 +520,12 @@ def refine_poses(views: Sequence[View], bounds_min: Sequence[float], bounds_max:
 
 def _best_shift(hull: "VoxelCarver", silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray, radius: int) -> Tuple[int, int]:
     """The centre (du, dv) of the shifts that leave the fewest silhouette pixels outside the hull's projection."""
-    voxels = np.argwhere(hull.occupancy)
-    if not len(voxels) or not silhouette.any():
+    if not hull.occupancy.any() or not silhouette.any():
         return 0, 0
-    centres = np.column_stack([hull.origin + hull.pitch * voxels, np.ones(len(voxels))])
-    a, b, w = (np.asarray(camera.K, dtype=float) @ invert(T_WC)[:3]) @ centres.T
-    front = w > _MIN_DEPTH
-    u, v = np.round(a[front] / w[front]).astype(np.int64), np.round(b[front] / w[front]).astype(np.int64)
     pad = radius + 1
     height, width = silhouette.shape
-    inside = (u >= -pad) & (u < width + pad) & (v >= -pad) & (v < height + pad)
-    projection = np.zeros((height + 2 * pad, width + 2 * pad), dtype=np.uint8)
-    projection[v[inside] + pad, u[inside] + pad] = 1
-    grow = int(math.ceil(0.5 * hull.pitch * camera.K[0, 0] / max(float(np.median(w[front])), 1e-6)))
-    projection = _dilated(projection, grow).astype(bool)
+    projection = _project_centres(hull.origin + hull.pitch * np.argwhere(hull.occupancy), hull.pitch, camera, T_WC,
+                                  silhouette.shape, pad)
     padded = np.zeros_like(projection)
     padded[pad : pad + height, pad : pad + width] = silhouette > 0
     shifts = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
@@ -481,6 +533,25 @@ def _best_shift(hull: "VoxelCarver", silhouette: np.ndarray, camera: CameraModel
     feasible = np.array(shifts)[outside == outside.min()]
     du, dv = np.round(feasible.mean(axis=0)).astype(int)  # the centre of the shifts that fit best
     return int(du), int(dv)
+
+
+def _project_centres(centres: np.ndarray, pitch: float, camera: CameraModel, T_WC: np.ndarray, shape: Tuple[int, int],
+                     pad: int) -> np.ndarray:
+    """Bool image (``shape`` grown by ``pad`` px a side) of voxel ``centres`` (N x 3, m) projected on the
+    pinhole, each grown by half a voxel's image (edge ``pitch``) at the median depth."""
+    height, width = shape
+    projection = np.zeros((height + 2 * pad, width + 2 * pad), dtype=np.uint8)
+    if not len(centres):
+        return projection.astype(bool)
+    a, b, w = (np.asarray(camera.K, dtype=float) @ invert(T_WC)[:3]) @ np.column_stack([centres, np.ones(len(centres))]).T
+    front = w > _MIN_DEPTH
+    if not front.any():
+        return projection.astype(bool)
+    u, v = np.round(a[front] / w[front]).astype(np.int64), np.round(b[front] / w[front]).astype(np.int64)
+    inside = (u >= -pad) & (u < width + pad) & (v >= -pad) & (v < height + pad)
+    projection[v[inside] + pad, u[inside] + pad] = 1
+    grow = int(math.ceil(0.5 * pitch * camera.K[0, 0] / max(float(np.median(w[front])), 1e-6)))
+    return _dilated(projection, grow).astype(bool)
 
 
 def load_npz(path: Union[str, Path]) -> Tuple[np.ndarray, np.ndarray, float]:

@@ -25,7 +25,7 @@ from agent.carving import (
     CarvingParams,
     HullMetrics,
     VoxelCarver,
-    carve,
+    carve_consistent,
     estimate_footprint,
     refine_poses,
     volume_bounds,
@@ -54,7 +54,7 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
     images = [images[i] for i in chosen] if images else ()
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
     views = refine_poses(views, lo, hi, params, estimate_footprint(lo, hi))
-    return carve(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
+    return carve_consistent(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
 
 
 class CarvingWorker:

@@ -98,7 +98,7 @@ def test_the_final_carve_keeps_the_precise_views_and_the_object():
     can = Cylinder(0.0, 0.0, 0.05, 0.0, 0.12)
     camera = CameraModel.from_fov(320, 240, math.radians(60.0))
     box = ((-0.06, -0.06, 0.0), (0.06, 0.06, 0.13))
-    params = dataclasses.replace(PARAMS, pitch=0.004)
+    params = dataclasses.replace(PARAMS, pitch=0.004, tolerance_max=PARAMS.tolerance)  # the choice alone (no carve_consistent)
     poses = ring_poses((0.0, 0.0, 0.06), 0.6, 12, (0.0,))
     precise = pose_quality(np.diag([0.003**2, 0.003**2, 0.0]), 0.6, PARAMS.keyframe_pose_std)
     drifted = pose_quality(np.diag([0.05**2, 0.05**2, 0.0]), 0.6, PARAMS.keyframe_pose_std)
@@ -121,3 +121,36 @@ def test_the_final_carve_keeps_the_precise_views_and_the_object():
     first_come = carve_views(views[0::2], x, P, params)  # what every-N-degrees kept: the first view of each direction
     assert kept(chosen) == 1.0
     assert kept(first_come) < 0.9, kept(first_come)
+
+
+def test_the_final_carve_raises_its_tolerance_only_as_far_as_the_views_disagree():
+    """carve_consistent: exact views keep the configured k (the tightest hull); views whose poses are
+    off by 3 cm, alternately left and right, leave the silhouettes uncovered at that k, and k grows
+    until the hull covers them again, keeping the can that the fixed k eats into."""
+    from agent.camera import CameraModel
+    from agent.carving import carve, carve_consistent
+    from tests.carving_scenes import Cylinder, render_mask, ring_poses
+
+    can = Cylinder(0.0, 0.0, 0.05, 0.0, 0.12)
+    camera = CameraModel.from_fov(320, 240, math.radians(60.0))
+    box = ((-0.08, -0.08, 0.0), (0.08, 0.08, 0.14))
+    params = dataclasses.replace(PARAMS, pitch=0.004, floor_prior=False)
+    exact = [(render_mask(can, camera, T, box), camera, T) for T in ring_poses((0.0, 0.0, 0.06), 0.6, 24, (0.0,))]
+    off = []
+    for i, (mask, _, T) in enumerate(exact):
+        wrong = T.copy()
+        wrong[:3, 3] += (0.03 if i % 2 else -0.03) * T[:3, 0]  # sideways
+        off.append((mask, camera, wrong))
+    inside = np.stack(np.meshgrid(*(np.linspace(-0.04, 0.04, 9),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
+    inside = inside[can.contains(inside)]
+
+    def kept(carver):
+        index = np.round((inside - carver.origin) / carver.pitch).astype(int)
+        return float(carver.occupancy[tuple(index.T)].mean())
+
+    tight = carve_consistent(exact, *box, None, params)
+    assert tight.params.tolerance == params.tolerance and np.median(tight.silhouette_coverage(exact)) >= params.min_coverage
+    fixed = carve(off, *box, None, params)
+    assert np.median(fixed.silhouette_coverage(off)) < params.min_coverage and kept(fixed) < 0.9
+    grown = carve_consistent(off, *box, None, params)
+    assert params.tolerance < grown.params.tolerance <= params.tolerance_max and kept(grown) > kept(fixed)
