@@ -131,16 +131,16 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
 # --- missions -------------------------------------------------------------------------------------
 
 BRIDGE = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
-# Worlds: seed 0 markers on the walls and a mug, seed 1 the low ring and a small flat box (4 cm
-# tall), seed 2 the walls and a 6.6 x 12 cm soda can, seed 4 the sparse layout and the bunny mesh;
-# sway 0.5-1.5 x the default. Seeds 0 and 2 complete (centre within 1.3 cm, clearance >= 0.59 m,
-# stopped within 40 ms) but fail the IoU (0.06-0.37 since the carve stopped growing silhouettes for
-# pose error); seed 1 ends object_lost (the filter's first views from one place put the flat box
-# 2-13 m away), seed 4 landmarks_lost (docs/benchmarks.md, matrix section). Slow until they pass.
-MISSION_SEEDS = [0, 1, 2, 4]
+# Worlds (docs/benchmarks.md, matrix section; all complete since the clock probe, 2026-11-23):
+# seed 11 coloured balls on the walls (four colours, six of each) and the can, in the default suite;
+# slow: seed 1 the low ring and a small flat box (4 cm tall), seed 0 wall markers and a mug, seed 2
+# wall markers and a 6.6 x 12 cm soda can, seed 4 the sparse layout and the bunny mesh. Seeds 0, 2
+# and 4 miss the centre bound (0.25 r: 15, 8 and 16 mm) by a few mm: their poses err by 1-2 cm
+# median (far, small markers; a focal length 0.5 % off scales every marker range).
+DEFAULT_SEEDS, SLOW_SEEDS = [11], [1, 0, 2, 4]
 
 
-@pytest.fixture(scope="module", params=[pytest.param(s, marks=pytest.mark.slow) for s in MISSION_SEEDS])
+@pytest.fixture(scope="module", params=DEFAULT_SEEDS + [pytest.param(s, marks=pytest.mark.slow) for s in SLOW_SEEDS])
 def mission(request, tmp_path_factory):
     from tools.matrix import run_mission
 

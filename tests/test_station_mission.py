@@ -263,6 +263,7 @@ def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission
     assert json.loads(carve.stdout)["metrics"]["volume"] == pytest.approx(result["model"]["metrics"]["volume"], rel=1e-9)
 
 
+@pytest.mark.slow  # the default suite runs a randomized world through the stand-in (tests/test_matrix.py)
 def test_standin_mission_through_qi_completes(tmp_path):
     """The configured world (can, the low ring, exact camera) served by the stand-in in this process
     (tools.matrix.run_mission), the station running its NAOqi bridge against it: the same guarantees
