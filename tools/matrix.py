@@ -16,6 +16,9 @@ true) camera. Measured against the simulator's truth:
 * pose error: median and 95th percentile of |(x, y) - (x_true, y_true)| and of |theta - theta_true|
   over the anchored poses the station logged (/agent/pose, at each frame's capture stamp), the truth
   interpolated at that stamp from the same samples (the stand-in's world runs on this clock);
+* keyframe misalignment: per keyframe (/agent/keyframe), the distance (px) between where its logged
+  T_WC and the true camera of that capture (recorded at each render) project the object's centre
+  at mid-height: what the carve's intersection of silhouettes suffers from;
 * the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
   the station's final decision, and
   whether the robot is at rest when the station has exited.
@@ -40,16 +43,18 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import yaml
 
+from agent.camera import CameraModel
+from nao_core.robot_model import load_robot_model
 from nao_sim.randomize import RandomWorld, WorldSpec, random_world
 from nao_sim.standin import StandIn
 from station.config import load_station_config
 from station.mcap_log import read_log
-from station.topics import DECISION, POSE
+from station.topics import DECISION, KEYFRAME, POSE
 from tools.bench import BEGIN, END, section
 
 POLL = 0.02  # s, truth sampling period for the clearance (<= 2 mm of walking at 0.1 m/s)
@@ -70,6 +75,7 @@ class MissionResult:
     min_clearance: float  # m
     pose_error: Optional[Tuple[float, float]]  # m, median and 95th percentile of the logged poses' position error
     heading_error: Optional[Tuple[float, float]]  # rad, the same for the heading
+    keyframe_shift: Optional[Tuple[float, float]]  # px, median and maximum misalignment of the carve's keyframes
     duration: Optional[float]  # s, the station's mission time
     stop_delay: Optional[float]  # s, final decision -> first stop call on the robot
     stopped: bool  # the robot at rest once the station exited
@@ -115,8 +121,9 @@ def model_iou(voxels: Path, spec: WorldSpec) -> float:
     return float(np.count_nonzero(model & true) / either) if either else 0.0
 
 
-def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], Optional[Tuple[float, float]]]:
-    """(median, 95th percentile) of the anchored logged poses' position and heading errors (module docstring)."""
+def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], ...]:
+    """(median, 95th percentile) of the anchored logged poses' position and heading errors (module
+    docstring); None where there is none."""
     if len(trace) < 2:
         return None, None
     t, x, y, theta = np.asarray(trace).T
@@ -130,10 +137,33 @@ def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tu
         px, py, ptheta = record["pose"]
         position.append(math.hypot(px - np.interp(stamp, t, x), py - np.interp(stamp, t, y)))
         heading.append(abs(math.remainder(ptheta - np.interp(stamp, t, theta), 2.0 * math.pi)))
-    if not position:
-        return None, None
-    stats = lambda v: (float(np.median(v)), float(np.percentile(v, 95)))  # noqa: E731
+    stats = lambda v: (float(np.median(v)), float(np.percentile(v, 95))) if v else None  # noqa: E731
     return stats(position), stats(heading)
+
+
+def keyframe_shifts(log: Path, renders: Dict[float, np.ndarray], spec: WorldSpec, resolution: str) -> Optional[Tuple[float, float]]:
+    """(median, maximum) over the carve's keyframes of how far (px) the object's centre at mid-height,
+    seen through the logged T_WC and the configured camera, lands from where the true camera of that
+    capture sees it: the misalignment the carve suffers."""
+    stamps = {m.json()["seq"]: m.json()["stamp"] for m in read_log(log, topics={POSE})}
+    camera = CameraModel.from_intrinsics(load_robot_model().camera.intrinsics(resolution))
+    true_camera = CameraModel.from_intrinsics(spec.robot.camera.intrinsics(resolution))
+    points = spec.scenario.world_points()
+    centre = np.array([[*spec.scenario.position, 0.5 * float(points[:, 2].max())]])
+    captured = np.array(sorted(renders))
+    shifts = []
+    for message in read_log(log, topics={KEYFRAME}):
+        record = message.json()
+        stamp = stamps.get(record["seq"])
+        if stamp is None or not len(captured):
+            continue
+        nearest = captured[np.argmin(np.abs(captured - stamp))]
+        if abs(nearest - stamp) > 0.005:
+            continue
+        logged, _ = camera.project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
+        true, _ = true_camera.project_world(centre, renders[nearest])
+        shifts.append(float(np.hypot(*(logged[0] - true[0]))))
+    return (float(np.median(shifts)), float(np.max(shifts))) if shifts else None
 
 
 def _final_decision_time(log: Path) -> Optional[float]:
@@ -157,6 +187,16 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     override.write_text(yaml.safe_dump({"station": {"landmark_map": spec.landmark_path, "resolution": resolution}}))
     world = RandomWorld(spec, resolution=resolution)
     monitor = _ClearanceMonitor(world)
+    renders: Dict[float, np.ndarray] = {}  # capture stamp -> true T_WC of every image the stand-in renders
+    render = world.render
+
+    def recording_render(at: Optional[float] = None):
+        frame = render(at)
+        camera = world.truth()["camera"]
+        renders[camera["stamp"]] = np.asarray(camera["T_WC"])
+        return frame
+
+    world.render = recording_render
     command = [sys.executable, "-m", "station.cli", "start", "--out", str(out / "run"), "--config", str(override)]
     if max_duration is not None:
         command += ["--max-duration", str(max_duration)]
@@ -182,12 +222,15 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
-    pose_error, heading_error = pose_errors(run / "run.mcap", monitor.trace) if (run / "run.mcap").exists() else (None, None)
+    pose_error, heading_error, keyframe_shift = None, None, None
+    if (run / "run.mcap").exists():
+        pose_error, heading_error = pose_errors(run / "run.mcap", monitor.trace)
+        keyframe_shift = keyframe_shifts(run / "run.mcap", renders, spec, resolution)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
-                         centre_error, radius_error, iou, clearance, pose_error, heading_error, result.get("duration"), stop_delay,
+                         centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
                          stopped, str(out))
 
 
@@ -227,10 +270,10 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
-        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
-          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | "
+          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
           f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} |" for r in results],
     ]
