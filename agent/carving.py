@@ -403,12 +403,15 @@ class VoxelCarver:
     def silhouette_coverage(self, views: Sequence[View]) -> np.ndarray:
         """c_i per view: the share of its silhouette (on the pinhole) that the hull's projection covers
         (module docstring); 1.0 for an empty silhouette."""
+        return self._coverage(_pinhole_views(views))
+
+    def _coverage(self, pinholes: Sequence[View]) -> np.ndarray:
+        """:meth:`silhouette_coverage` of views whose masks are already bool pinhole silhouettes."""
         centres = self.origin + self.pitch * np.argwhere(self.occupancy)
-        coverage = np.ones(len(views))
-        for i, (mask, camera, T_WC) in enumerate(views):
-            silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC)) > 0
+        coverage = np.ones(len(pinholes))
+        for i, (silhouette, camera, T_WC) in enumerate(pinholes):
             if silhouette.any():
-                projection = _project_centres(centres, self.pitch, camera, np.asarray(T_WC, dtype=float), silhouette.shape, 0)
+                projection = _project_centres(centres, self.pitch, camera, T_WC, silhouette.shape, 0)
                 coverage[i] = np.count_nonzero(silhouette & projection) / np.count_nonzero(silhouette)
         return coverage
 
@@ -480,11 +483,18 @@ def carve_consistent(
     views = list(views)
     top = carve(views, bounds_min, bounds_max, pitch, dataclasses.replace(params, tolerance=params.tolerance_max),
                 footprint, images)
+    pinholes = _pinhole_views(views)  # resampled once for every k tried
     for k in range(params.tolerance, params.tolerance_max):
         hull = top.at_tolerance(k)
-        if np.median(hull.silhouette_coverage(views)) >= params.min_coverage:
+        if np.median(hull._coverage(pinholes)) >= params.min_coverage:
             return hull
     return top
+
+
+def _pinhole_views(views: Sequence[View]) -> List[View]:
+    """The views with each mask resampled to a bool silhouette on the ideal pinhole (``_pinhole_mask``)."""
+    return [(_pinhole_mask(*_checked_view(mask, camera, T_WC)) > 0, camera, np.asarray(T_WC, dtype=float))
+            for mask, camera, T_WC in views]
 
 
 def refine_poses(views: Sequence[View], bounds_min: Sequence[float], bounds_max: Sequence[float],
@@ -520,12 +530,12 @@ def refine_poses(views: Sequence[View], bounds_min: Sequence[float], bounds_max:
 
 def _best_shift(hull: "VoxelCarver", silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray, radius: int) -> Tuple[int, int]:
     """The centre (du, dv) of the shifts that leave the fewest silhouette pixels outside the hull's projection."""
-    if not hull.occupancy.any() or not silhouette.any():
+    voxels = np.argwhere(hull.occupancy)
+    if not len(voxels) or not silhouette.any():
         return 0, 0
     pad = radius + 1
     height, width = silhouette.shape
-    projection = _project_centres(hull.origin + hull.pitch * np.argwhere(hull.occupancy), hull.pitch, camera, T_WC,
-                                  silhouette.shape, pad)
+    projection = _project_centres(hull.origin + hull.pitch * voxels, hull.pitch, camera, T_WC, silhouette.shape, pad)
     padded = np.zeros_like(projection)
     padded[pad : pad + height, pad : pad + width] = silhouette > 0
     shifts = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
