@@ -60,9 +60,10 @@ NO_ROBOT_WATCHDOG = ("no_robot_watchdog: the bridge refuses to walk the robot be
 
 
 class BridgeLink:
-    def __init__(self, transport: TransportConfig, robot_name: str, watchdog_grace: float = 5.0):
+    def __init__(self, transport: TransportConfig, robot_name: str, watchdog_grace: Optional[float] = None):
         """``transport``: connect endpoint(s), lease, and for a lab network TLS (``TransportConfig.secure``);
-        ``watchdog_grace``: s a bridge may refuse to walk for want of the robot-side watchdog."""
+        ``watchdog_grace``: s a bridge may refuse to walk for want of the robot-side watchdog
+        (``station.watchdog_grace``; None: no limit)."""
         self.endpoint = ", ".join(transport.connect)
         self.keys = RobotKeys(robot_name)
         try:
@@ -76,7 +77,7 @@ class BridgeLink:
         self._seq = 0
         self.station_id = str(self.session.zid())
         self.lease = ""
-        self._stop_failed_reported = False
+        self._abort_reported = False  # a bridge_lost for this lease (stop_failed, no robot watchdog) is in the inbox
         self._watchdog_grace = watchdog_grace
         self._no_watchdog_since: Optional[float] = None  # station clock of the first state in a run saying so
 
@@ -123,7 +124,7 @@ class BridgeLink:
             if reply is not None:
                 if reply.granted:
                     self.lease, self._seq = reply.lease, 0
-                    self._stop_failed_reported = False
+                    self._abort_reported = False
                     return
                 reason = reply.reason
                 if reason == "held":
@@ -198,13 +199,14 @@ class BridgeLink:
             self._no_watchdog_since = self._no_watchdog_since or received.t
         else:
             self._no_watchdog_since = None
-        if self._stop_failed_reported:
+        if self._abort_reported:
             return
         if watchdog == "stop_failed":
-            self._stop_failed_reported = True
+            self._abort_reported = True
             self.inbox.put(Received("bridge_lost", received.t, b"stop_failed: the bridge cannot confirm a stop"))
-        elif self._no_watchdog_since is not None and received.t - self._no_watchdog_since >= self._watchdog_grace:
-            self._stop_failed_reported = True
+        elif (self._watchdog_grace is not None and self._no_watchdog_since is not None
+              and received.t - self._no_watchdog_since >= self._watchdog_grace):
+            self._abort_reported = True
             self.inbox.put(Received("bridge_lost", received.t, NO_ROBOT_WATCHDOG.encode()))
 
     def _on_frame(self, sample: zenoh.Sample) -> None:

@@ -121,16 +121,15 @@ def model_iou(voxels: Path, spec: WorldSpec) -> float:
     return float(np.count_nonzero(model & true) / either) if either else 0.0
 
 
-def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], ...]:
-    """(median, 95th percentile) of the anchored logged poses' position and heading errors (module
-    docstring); None where there is none."""
+def pose_errors(poses: List[dict], trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], ...]:
+    """(median, 95th percentile) of the anchored logged ``poses``' (/agent/pose records) position and
+    heading errors (module docstring); None where there is none."""
     if len(trace) < 2:
         return None, None
     t, x, y, theta = np.asarray(trace).T
     theta = np.unwrap(theta)
     position, heading = [], []
-    for message in read_log(log, topics={POSE}):
-        record = message.json()
+    for record in poses:
         stamp = record.get("stamp")
         if not record.get("anchored") or stamp is None or not t[0] <= stamp <= t[-1]:
             continue
@@ -141,11 +140,12 @@ def pose_errors(log: Path, trace: List[Tuple[float, float, float, float]]) -> Tu
     return stats(position), stats(heading)
 
 
-def keyframe_shifts(log: Path, renders: Dict[float, np.ndarray], spec: WorldSpec, resolution: str) -> Optional[Tuple[float, float]]:
+def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarray], spec: WorldSpec,
+                    resolution: str) -> Optional[Tuple[float, float]]:
     """(median, maximum) over the carve's keyframes of how far (px) the object's centre at mid-height,
     seen through the logged T_WC and the configured camera, lands from where the true camera of that
-    capture sees it: the misalignment the carve suffers."""
-    stamps = {m.json()["seq"]: m.json()["stamp"] for m in read_log(log, topics={POSE})}
+    capture sees it: the misalignment the carve suffers. ``poses``: the log's /agent/pose records."""
+    stamps = {record["seq"]: record["stamp"] for record in poses}
     camera = CameraModel.from_intrinsics(load_robot_model().camera.intrinsics(resolution))
     true_camera = CameraModel.from_intrinsics(spec.robot.camera.intrinsics(resolution))
     points = spec.scenario.world_points()
@@ -224,8 +224,9 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
     pose_error, heading_error, keyframe_shift = None, None, None
     if (run / "run.mcap").exists():
-        pose_error, heading_error = pose_errors(run / "run.mcap", monitor.trace)
-        keyframe_shift = keyframe_shifts(run / "run.mcap", renders, spec, resolution)
+        poses = [message.json() for message in read_log(run / "run.mcap", topics={POSE})]
+        pose_error, heading_error = pose_errors(poses, monitor.trace)
+        keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
