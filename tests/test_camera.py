@@ -69,7 +69,13 @@ def test_project_world_marks_points_behind():
     T_WC = camera_in_world((0.0, 0.0, 0.0), ROBOT.camera_in_robot(0.0, 0.0))
     uv, front = cam.project_world(np.array([[2.0, 0.0, 0.5], [-2.0, 0.0, 0.5]]), T_WC)
     assert front.tolist() == [True, False]
-    assert np.allclose(uv[0], [320.0, 240.0 + 587.0 * (0.4974 - 0.5) / 1.94], atol=1.0)
+    # Pinhole by hand: the head straight, the point 0.5 m high seen from the camera's centre
+    # (x_c, 0, z_c) of the configured kinematic chain at elevation e, the optical axis tilted down by
+    # the configured tilt (NAO's positive pitch): the point lies e + tilt above the axis.
+    x_c, _, z_c = ROBOT.camera_in_robot_nao(0.0, 0.0)[:3, 3]
+    elevation = math.atan2(0.5 - z_c, 2.0 - x_c)
+    f = 320.0 / math.tan(math.radians(57.2) / 2.0)
+    assert np.allclose(uv[0], [320.0, 240.0 - f * math.tan(elevation + ROBOT.camera.tilt)], atol=1e-6)
 
 
 def test_planar_pose_roundtrip_and_inverse():
