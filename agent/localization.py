@@ -177,6 +177,9 @@ class PoseFix:
     points: int  # inlier points used
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
+    inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
+    T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
+    roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
 
 
 @dataclass(frozen=True)
@@ -208,7 +211,7 @@ _CORNER_REFINEMENT = {
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
 }
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-_MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
+MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
 
 
 @dataclass
@@ -315,8 +318,8 @@ class PlanarModel:
         w = pixel_sigma / roll_sigma
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
-            if np.any(z < _MIN_DEPTH):
-                raise NoFix(f"{int(np.sum(z < _MIN_DEPTH))} landmark point(s) behind the camera at the fit")
+            if np.any(z < MIN_DEPTH):
+                raise NoFix(f"{int(np.sum(z < MIN_DEPTH))} landmark point(s) behind the camera at the fit")
             r = (uv - target).ravel()
             Jr = J.reshape(-1, 4)
             H = Jr.T @ Jr
@@ -333,7 +336,7 @@ class PlanarModel:
             if np.abs(dp).max() < 1e-8:  # m, rad: from the linear seed 3-4 steps get there
                 break
         uv, z, J = self.jacobian(p, X)
-        if np.any(z < _MIN_DEPTH):
+        if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point(s) behind the camera at the fit")
         err = np.linalg.norm(uv - target, axis=1)
         Jr = J.reshape(-1, 4)
@@ -709,7 +712,8 @@ class RobotLocalizer:
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ model.T_BC)
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]))
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
+                       roll_sigma=self._roll_sigma)
 
     # -- markers -------------------------------------------------------------------------------
 
@@ -924,7 +928,7 @@ class RobotLocalizer:
 
     def _plausible(self, model: PlanarModel, p: np.ndarray, X: np.ndarray) -> bool:
         X_C, _ = model.to_camera(p, X)
-        return bool(np.all(X_C[:, 2] > _MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
+        return bool(np.all(X_C[:, 2] > MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
 
     def _consensus(self, model: PlanarModel, poses: np.ndarray, blobs_uv: np.ndarray, same: np.ndarray,
                    L: np.ndarray, markers: _Points) -> np.ndarray:
@@ -973,7 +977,7 @@ class RobotLocalizer:
             quads, depth = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
             x, y = quads[..., 0], quads[..., 1]
             facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
-            inside = np.all((quads >= margin) & (quads <= size - 1 - margin), axis=(1, 2)) & np.all(depth > _MIN_DEPTH, axis=1)
+            inside = np.all((quads >= margin) & (quads <= size - 1 - margin), axis=(1, 2)) & np.all(depth > MIN_DEPTH, axis=1)
             side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
             ok = facing & inside & (np.nan_to_num(side) >= self.params.aruco_min_side_px)
             chosen.append(corners.reshape(-1, 4, 3)[ok].reshape(-1, 3))
@@ -983,7 +987,7 @@ class RobotLocalizer:
             uv, z = model.project(p, L)
             with np.errstate(invalid="ignore", divide="ignore"):
                 area = math.pi / 4 * (self.camera.K[0, 0] * diameters / z) ** 2
-            inside = np.all((uv >= margin) & (uv <= size - 1 - margin), axis=1) & (z > _MIN_DEPTH)
+            inside = np.all((uv >= margin) & (uv <= size - 1 - margin), axis=1) & (z > MIN_DEPTH)
             chosen.append(L[inside & (area >= self.perception.landmark_min_area)])
         X = np.vstack(chosen) if chosen else np.empty((0, 3))
         return X, model.project(p, X)[0]

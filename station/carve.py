@@ -59,7 +59,9 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
                 predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose
                 if silhouette is not None:
-                    views.append((silhouette.mask, camera, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
+                    seen_with = camera if keyframe.get("K") is None else dataclasses.replace(
+                        camera, K=np.asarray(keyframe["K"], dtype=float).reshape(3, 3))  # self-calibrated (agent/self_calibration.py)
+                    views.append((silhouette.mask, seen_with, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
                     images.append(image)
                     qualities.append(float(keyframe.get("quality", 1.0)))  # logs before agent/keyframes.py: all alike
                 bar.update()

@@ -69,13 +69,14 @@ class CarvingWorker:
         self.live: Optional[VoxelCarver] = None
         self.error: Optional[str] = None
         self._on_progress = on_progress
-        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], float]]]" = queue.Queue()
+        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], float, CameraModel]]]" = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="carving", daemon=True)
         self._thread.start()
 
     def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray,
-               image: Optional[np.ndarray] = None, quality: float = 1.0) -> None:
-        self._queue.put((mask, T_WC, x.copy(), P.copy(), image, quality))
+               image: Optional[np.ndarray] = None, quality: float = 1.0, camera: Optional[CameraModel] = None) -> None:
+        """Queue a keyframe; ``camera``: the intrinsics it was seen with (default: the worker's)."""
+        self._queue.put((mask, T_WC, x.copy(), P.copy(), image, quality, camera or self.camera))
 
     def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
         """Stop the worker and carve the final model (None without keyframes or an estimate, or when the
@@ -100,8 +101,8 @@ class CarvingWorker:
             item = self._queue.get()
             if item is None:
                 return
-            mask, T_WC, x, P, image, quality = item
-            view = (mask, self.camera, T_WC)
+            mask, T_WC, x, P, image, quality, camera = item
+            view = (mask, camera, T_WC)
             self.views.append(view)
             self.images.append(image)
             self.qualities.append(quality)

@@ -30,6 +30,7 @@ from agent.localization import LocalizationParams
 from agent.mission import MissionParams
 from agent.perception import PerceptionParams
 from agent.planner import PlannerParams
+from agent.self_calibration import SelfCalibrationParams
 from nao_core.config import CONFIG_DIR, ConfigError, bounds, load, read_yaml
 from nao_core.landmark_map import LandmarkMap, load_landmark_map
 
@@ -61,6 +62,7 @@ SECTIONS: Dict[str, type] = {
     "perception": PerceptionParams,
     "localization": LocalizationParams,
     "head_servo": HeadServoParams,
+    "self_calibration": SelfCalibrationParams,
 }
 ROBOT_SECTION = "robot"
 
@@ -75,6 +77,7 @@ class StationConfig:
     perception: PerceptionParams
     localization: LocalizationParams
     head_servo: HeadServoParams
+    self_calibration: SelfCalibrationParams
     landmarks: LandmarkMap
     overrides: Sequence[Path] = ()
 

@@ -15,13 +15,14 @@ from typing import Any, ClassVar, Dict, List, Literal, Optional, Tuple, Type
 from agent.mission import Phase
 from nao_core.protocol.schema import record_schema
 from station.mcap_log import encode_json
-from station.topics import COVERAGE, DECISION, EKF, FRAME_REJECTED, KEYFRAME, MEASUREMENT, PLAN, POSE
+from station.topics import COVERAGE, DECISION, EKF, FRAME_REJECTED, KEYFRAME, MEASUREMENT, PLAN, POSE, SELF_CALIBRATION
 
 Vec3 = Tuple[float, float, float]
 Matrix16 = Tuple[float, ...]  # a 4 x 4 transform, row-major
+Matrix9 = Tuple[float, ...]  # a 3 x 3 camera matrix K, row-major
 
 PhaseName = Literal[tuple(phase.value for phase in Phase)]  # type: ignore[misc]
-FrameStep = Literal["decode", "localization", "perception", "filter", "coverage", "keyframe"]
+FrameStep = Literal["decode", "localization", "calibration", "perception", "filter", "coverage", "keyframe"]
 
 
 class Record:
@@ -123,7 +124,8 @@ class PlanRecord(Record):
 
 @dataclass(frozen=True)
 class KeyframeRecord(Record):
-    """A carving keyframe: frame seq, viewing azimuth, T_WC, the predicted pixel that picked the blob, its quality (agent/keyframes.py)."""
+    """A carving keyframe: frame seq, viewing azimuth, T_WC, the predicted pixel that picked the blob, its quality
+    (agent/keyframes.py), and the camera matrix it was seen with (None in logs before self-calibration: the bridge's)."""
 
     TOPIC: ClassVar[str] = KEYFRAME
     NAME: ClassVar[str] = "agent.Keyframe"
@@ -133,6 +135,22 @@ class KeyframeRecord(Record):
     T_WC: Matrix16
     predicted_uv: Optional[Tuple[float, float]]
     quality: float
+    K: Optional[Matrix9] = None
+
+
+@dataclass(frozen=True)
+class CalibrationRecord(Record):
+    """A self-calibration estimate applied (agent/self_calibration.py): the corrected K, the error
+    c = (s_x, s_y, d_u, d_v) of the configured one with its standard deviations, the fixes and their RMS (px)."""
+
+    TOPIC: ClassVar[str] = SELF_CALIBRATION
+    NAME: ClassVar[str] = "agent.Calibration"
+    t: float
+    K: Matrix9
+    error: Tuple[float, float, float, float]
+    std: Tuple[float, float, float, float]
+    fixes: int
+    rms_px: float
 
 
 @dataclass(frozen=True)
@@ -150,4 +168,4 @@ class FrameRejectedRecord(Record):
 
 OUTPUTS: Dict[str, Type[Record]] = {cls.TOPIC: cls for cls in (
     DecisionRecord, PoseRecord, MeasurementRecord, EkfRecord, CoverageRecord, PlanRecord, KeyframeRecord,
-    FrameRejectedRecord)}
+    FrameRejectedRecord, CalibrationRecord)}

@@ -82,12 +82,14 @@ from agent.localization import RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
+from agent.self_calibration import SelfCalibration
 from nao_core.geometry import Pose, camera_in_world, compose, relative, wrap_angle
 from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel
 from station.config import StationConfig
 from station.events import BridgeLost, Event, FrameReceived, Interrupted, Replan, StateReceived, Tick
 from station.outputs import (
+    CalibrationRecord,
     CoverageRecord,
     DecisionRecord,
     EkfRecord,
@@ -112,6 +114,7 @@ class KeyframeView:
     P: np.ndarray
     image: Optional[np.ndarray] = None  # the frame (BGR), for the model's vertex colours
     quality: float = 1.0  # agent/keyframes.py: pose precision x silhouette quality at capture
+    camera: Optional[CameraModel] = None  # the intrinsics it was seen with (self-calibration), None: the bridge's
 
 
 @dataclass
@@ -159,6 +162,7 @@ class Pilot:
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
+        self.calibration = SelfCalibration(config.self_calibration, self.camera)
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -265,6 +269,10 @@ class Pilot:
             self.pose = world if world is not None else tuple(float(v) for v in meta.odom)
             T_WC = camera_in_world(self.pose, T_BC)
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
+        if fix is not None:
+            with guarded("calibration"):
+                if self.calibration.add(fix, meta.stamp):
+                    self._recalibrated(step, t)
         step.outputs.append(PoseRecord(t, meta.seq, meta.stamp, self.pose, tuple(map(float, meta.odom)), fix is not None,
                                        _flat(T_WC), _flat(T_BC), self.anchored))
         with guarded("perception"):
@@ -315,6 +323,15 @@ class Pilot:
         self._last_capture = stamp
         return result
 
+    def _recalibrated(self, step: Step, t: float) -> None:
+        """Every user of the camera (localizer, perception, head servo, keyframes) switches to the
+        intrinsics the landmark fixes gave (agent/self_calibration.py); from the next frame on."""
+        self.camera = self.localizer.camera = self.calibration.camera
+        applied = self.calibration.applied
+        std = np.sqrt(np.diag(applied.covariance))
+        step.outputs.append(CalibrationRecord(t, _flat(self.camera.K), tuple(map(float, applied.c)), tuple(map(float, std)),
+                                              applied.frames, applied.rms))
+
     def _reanchor(self, world: Pose, odom: Pose) -> None:
         """Move the filter from the odometry frame into W (module docstring)."""
         x0, y0, theta = compose(world, relative(odom, (0.0, 0.0, 0.0)))  # T_WO
@@ -350,8 +367,8 @@ class Pilot:
                                c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
         if not self._keyframes.offer(azimuth, quality):
             return
-        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality)
-        step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality))
+        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera)
+        step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
 
     # per tick ---------------------------------------------------------------------------------
 

@@ -270,7 +270,7 @@ class ControlLoop:
         self._later(self._annotate, step, t)
         if step.keyframe is not None:
             view = step.keyframe
-            self.carving.submit(view.mask, view.T_WC, view.x, view.P, view.image, view.quality)
+            self.carving.submit(view.mask, view.T_WC, view.x, view.P, view.image, view.quality, view.camera)
             self._keyframe_poses.append(view.T_WC)
             poses = list(self._keyframe_poses)
             self._later(lambda: self.log.proto(SCENE_KEYFRAMES, foxglove.frusta(t, self.camera, poses), t))

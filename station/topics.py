@@ -25,6 +25,7 @@ COVERAGE = "/agent/coverage"
 PLAN = "/agent/plan"
 KEYFRAME = "/agent/keyframe"
 FRAME_REJECTED = "/agent/frame_rejected"  # a frame a per-frame step raised on (dropped)
+SELF_CALIBRATION = "/agent/self_calibration"  # the camera intrinsics the mission's landmark fixes gave (agent/self_calibration.py)
 # Foxglove views (config/foxglove/layout.json)
 LOG = "/station/log"  # foxglove.Log: every console line
 ESTIMATE = "/station/estimate"  # the object estimate and its standard deviations, for plots

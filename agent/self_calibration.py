@@ -1,0 +1,203 @@
+"""Camera intrinsics refined in flight from the mission's own landmark fixes (docs/landmarks.md,
+"Self-calibration").
+
+A calibration off by 0.5 % in focal length and 1 px in principal point (what a checkerboard
+calibration leaves) scales every marker range by 0.5 % and tilts every ray by a milliradian: at
+1.5-2 m that is 1-2 cm of pose error, the same in every frame, and the object inherits it. The
+landmark map is a calibration target the robot sees from many poses, so the error is observable.
+
+Parameters: c = (s_x, s_y, d_u, d_v), the corrected pinhole
+
+    f_x' = f_x (1 + s_x),  f_y' = f_y (1 + s_y),  c_x' = c_x + d_u,  c_y' = c_y + d_v,
+
+common to all stored fixes k, each with its own planar pose p_k = (x, y, theta, delta) (the torso
+roll delta held by the fix's roll prior w_k = sigma_px / sigma_roll,k), the projection of
+agent/localization.py ``PlanarModel``. Bundle adjustment with known world points, Gauss-Newton on
+all of them at once, the poses eliminated by the Schur complement:
+
+    A_k = J_pk^T J_pk + diag(0, 0, 0, w_k^2),  B_k = J_pk^T J_ck,
+    S = sum_k (J_ck^T J_ck - B_k^T A_k^-1 B_k) + Lambda,   b = sum_k (J_ck^T r_k - B_k^T A_k^-1 g_pk) + Lambda c,
+    dc = -S^-1 b,   dp_k = -A_k^-1 (g_pk + B_k dc),
+
+with J_c: du/ds_x = f_x x/z, dv/ds_y = f_y y/z, du/dd_u = dv/dd_v = 1, and the prior
+Lambda = sigma_px^2 diag(1/sigma_s^2, 1/sigma_s^2, 1/sigma_d^2, 1/sigma_d^2) (what a calibration
+may be off by). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
+principal point shift across the image is nearly a turn of the robot (d_u is held mostly by its
+prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
+``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
+
+The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
+on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import List, Optional
+
+import numpy as np
+
+from agent.camera import CameraModel
+from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
+from nao_core.config import bounds
+
+
+@dataclass(frozen=True)
+class SelfCalibrationParams:
+    """config/self_calibration.yaml, section ``self_calibration``."""
+
+    enabled: bool
+    scale_sigma: float = field(metadata=bounds(1e-5, 0.2))  # prior std of each focal scale error (relative)
+    principal_sigma: float = field(metadata=bounds(0.01, 50.0))  # prior std of each principal point error, px
+    pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px (the prior's weight)
+    min_points: int = field(metadata=bounds(4, 1000))  # a fix with fewer inlier points is not stored
+    min_interval: float = field(metadata=bounds(0.0, 60.0))  # s between stored fixes (consecutive frames say the same)
+    max_frames: int = field(metadata=bounds(4, 1000))  # stored fixes (the oldest goes)
+    min_frames: int = field(metadata=bounds(2, 1000))  # fixes before an estimate is applied
+    update_every: int = field(metadata=bounds(1, 1000))  # new fixes between two estimates
+    max_scale_std: float = field(metadata=bounds(1e-5, 0.2))  # the estimate is applied when its focal scales are this sure
+    outlier_rms_ratio: float = field(metadata=bounds(1.0, 100.0))  # a fix this many times the median RMS is dropped
+    iterations: int = field(metadata=bounds(1, 100))
+
+
+@dataclass(frozen=True)
+class _Fix:
+    X: np.ndarray  # N x 3 world points
+    u: np.ndarray  # N x 2 pixels, distortion removed
+    T_BC: np.ndarray
+    p: np.ndarray  # (x, y, theta, delta) of the fix
+    roll_sigma: float
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """An estimate: c = (s_x, s_y, d_u, d_v), its covariance, the fixes it used and their RMS (px)."""
+
+    c: np.ndarray
+    covariance: np.ndarray
+    frames: int
+    rms: float
+
+    @property
+    def scale_std(self) -> float:
+        return float(np.sqrt(max(self.covariance[0, 0], self.covariance[1, 1])))
+
+
+def corrected(camera: CameraModel, c: np.ndarray) -> CameraModel:
+    """``camera`` with c = (s_x, s_y, d_u, d_v) applied to its K (module docstring)."""
+    K = camera.K.copy()
+    K[0, 0] *= 1.0 + c[0]
+    K[1, 1] *= 1.0 + c[1]
+    K[0, 2] += c[2]
+    K[1, 2] += c[3]
+    return replace(camera, K=K)
+
+
+class SelfCalibration:
+    """Stores the landmark fixes of a mission and estimates the camera's intrinsics error from them."""
+
+    def __init__(self, params: SelfCalibrationParams, camera: CameraModel):
+        self.params = params
+        self.configured = camera
+        self.estimate: Optional[Calibration] = None  # the latest, applied or not
+        self.applied: Optional[Calibration] = None
+        self._fixes: List[_Fix] = []
+        self._new = 0
+        self._last_stamp = -np.inf
+
+    @property
+    def camera(self) -> CameraModel:
+        """The configured camera, corrected by the applied estimate."""
+        return self.configured if self.applied is None else corrected(self.configured, self.applied.c)
+
+    def add(self, fix: PoseFix, stamp: float) -> bool:
+        """Store ``fix``; True when a new estimate was applied. Its pixels have the lens distortion removed
+        (by whichever K the localizer had: the distortion hardly depends on a K this close)."""
+        p = self.params
+        if not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points or stamp - self._last_stamp < p.min_interval:
+            return False
+        X, u = fix.inliers
+        self._fixes = (self._fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
+        self._last_stamp = stamp
+        self._new += 1
+        if len(self._fixes) < p.min_frames or self._new < p.update_every:
+            return False
+        self._new = 0
+        self.estimate = self.solve()
+        if self.estimate is not None and self.estimate.scale_std <= p.max_scale_std:
+            self.applied = self.estimate
+            return True
+        return False
+
+    def solve(self) -> Optional[Calibration]:
+        """Bundle adjustment of c and the stored fixes' poses (module docstring); None when it fails."""
+        fixes = list(self._fixes)
+        for _ in range(3):  # drop wrong associations, then refit
+            result = self._solve(fixes)
+            if result is None:
+                return None
+            calibration, rms = result
+            keep = rms <= self.params.outlier_rms_ratio * max(float(np.median(rms)), 1e-3)
+            if keep.all():
+                return calibration
+            fixes = [f for f, k in zip(fixes, keep) if k]
+            if len(fixes) < self.params.min_frames:
+                return None
+        return None
+
+    def _solve(self, fixes: List[_Fix]):
+        p = self.params
+        prior = (p.pixel_sigma / np.array([p.scale_sigma, p.scale_sigma, p.principal_sigma, p.principal_sigma])) ** 2
+        c = np.zeros(4) if self.estimate is None else self.estimate.c.copy()
+        poses = [f.p.copy() for f in fixes]
+        K0 = self.configured.K
+        try:
+            for _ in range(p.iterations):
+                S, b = np.diag(prior), prior * c
+                blocks = []
+                camera = corrected(self.configured, c)
+                for fix, pose in zip(fixes, poses):
+                    r, Jp, Jc, w2 = self._linearize(camera, K0, fix, pose)
+                    A = Jp.T @ Jp
+                    A[3, 3] += w2
+                    g = Jp.T @ r
+                    g[3] += w2 * pose[3]
+                    B = Jp.T @ Jc
+                    A_inv = np.linalg.inv(A)
+                    S += Jc.T @ Jc - B.T @ A_inv @ B
+                    b += Jc.T @ r - B.T @ A_inv @ g
+                    blocks.append((A_inv, B, g))
+                dc = -np.linalg.solve(S, b)
+                c += dc
+                for pose, (A_inv, B, g) in zip(poses, blocks):
+                    pose += -A_inv @ (g + B @ dc)
+                if np.abs(dc).max() < 1e-7:
+                    break
+            camera = corrected(self.configured, c)
+            residuals = [self._linearize(camera, K0, fix, pose)[0] for fix, pose in zip(fixes, poses)]
+        except (np.linalg.LinAlgError, NoFix):
+            return None
+        if not np.all(np.isfinite(c)):
+            return None
+        rms = np.array([float(np.sqrt(np.mean(r**2) * 2.0)) for r in residuals])
+        n = sum(len(r) for r in residuals)
+        dof = max(1, n - 4 * len(fixes) - 4)
+        s2 = max(p.pixel_sigma**2, float(sum(np.sum(r**2) for r in residuals)) / dof)
+        covariance = s2 * np.linalg.inv(S)
+        return Calibration(c, covariance, len(fixes), float(np.sqrt(np.mean(np.concatenate(residuals) ** 2) * 2.0))), rms
+
+    def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
+        """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
+        model = PlanarModel(camera, fix.T_BC)
+        uv, z, J = model.jacobian(pose, fix.X)
+        if np.any(z < MIN_DEPTH):
+            raise NoFix("landmark point behind the camera")
+        X_C, _ = model.to_camera(pose, fix.X)
+        n = len(fix.X)
+        Jc = np.zeros((n, 2, 4))
+        Jc[:, 0, 0] = K0[0, 0] * X_C[:, 0] / z
+        Jc[:, 1, 1] = K0[1, 1] * X_C[:, 1] / z
+        Jc[:, 0, 2] = 1.0
+        Jc[:, 1, 3] = 1.0
+        w2 = (self.params.pixel_sigma / fix.roll_sigma) ** 2
+        return (uv - fix.u).ravel(), J.reshape(-1, 4), Jc.reshape(-1, 4), w2
