@@ -645,11 +645,12 @@ class RobotLocalizer:
         return self._solve(model, markers, lambda: self.detector.color_blobs(image), prior_p)
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
-            groups: Optional[np.ndarray] = None) -> Optional[PoseFix]:
+            groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None) -> Optional[PoseFix]:
         """The fix from given correspondences (N x 3 world, N x 2 pixels; ``groups``: marker of each
-        point, default four points per marker), or None (``no_fix_reason`` says why). For tests and tools."""
+        point, default four points per marker; ``roll_sigma`` as for ``measure``), or None
+        (``no_fix_reason`` says why). For tests and tools."""
         self.no_fix_reason = ""
-        self._roll_sigma = self.params.roll_sigma
+        self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         try:
             model = PlanarModel(self.camera, _check_transform(T_BC))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)

@@ -26,6 +26,13 @@ principal point shift across the image is nearly a turn of the robot (d_u is hel
 prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
 
+Only fixes made standing are stored (their roll prior at most ``max_roll_sigma``): while walking
+the torso sways, rolls and bobs by more than the kinematics report, and a bundle adjustment over
+walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
+mission). A mission stands while it searches and localizes; when it finds the object at once, it stands at
+the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and
+the landmark scan (station/pilot.py) until an estimate is applied.
+
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
 on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
 """
@@ -51,6 +58,7 @@ class SelfCalibrationParams:
     principal_sigma: float = field(metadata=bounds(0.01, 50.0))  # prior std of each principal point error, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px (the prior's weight)
     min_points: int = field(metadata=bounds(4, 1000))  # a fix with fewer inlier points is not stored
+    max_roll_sigma: float = field(metadata=bounds(1e-6, 0.2))  # rad: a fix fitted with a looser roll prior (walking) is not stored
     min_interval: float = field(metadata=bounds(0.0, 60.0))  # s between stored fixes (consecutive frames say the same)
     max_frames: int = field(metadata=bounds(4, 1000))  # stored fixes (the oldest goes)
     min_frames: int = field(metadata=bounds(2, 1000))  # fixes before an estimate is applied
@@ -58,6 +66,7 @@ class SelfCalibrationParams:
     max_scale_std: float = field(metadata=bounds(1e-5, 0.2))  # the estimate is applied when its focal scales are this sure
     outlier_rms_ratio: float = field(metadata=bounds(1.0, 100.0))  # a fix this many times the median RMS is dropped
     iterations: int = field(metadata=bounds(1, 100))
+    standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
 
 
 @dataclass(frozen=True)
@@ -101,7 +110,7 @@ class SelfCalibration:
         self.configured = camera
         self.estimate: Optional[Calibration] = None  # the latest, applied or not
         self.applied: Optional[Calibration] = None
-        self._fixes: List[_Fix] = []
+        self.fixes: List[_Fix] = []
         self._new = 0
         self._last_stamp = -np.inf
 
@@ -114,13 +123,14 @@ class SelfCalibration:
         """Store ``fix``; True when a new estimate was applied. Its pixels have the lens distortion removed
         (by whichever K the localizer had: the distortion hardly depends on a K this close)."""
         p = self.params
-        if not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points or stamp - self._last_stamp < p.min_interval:
+        if (not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points or fix.roll_sigma > p.max_roll_sigma
+                or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers
-        self._fixes = (self._fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
+        self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
         self._last_stamp = stamp
         self._new += 1
-        if len(self._fixes) < p.min_frames or self._new < p.update_every:
+        if len(self.fixes) < p.min_frames or self._new < p.update_every:
             return False
         self._new = 0
         self.estimate = self.solve()
@@ -131,7 +141,7 @@ class SelfCalibration:
 
     def solve(self) -> Optional[Calibration]:
         """Bundle adjustment of c and the stored fixes' poses (module docstring); None when it fails."""
-        fixes = list(self._fixes)
+        fixes = list(self.fixes)
         for _ in range(3):  # drop wrong associations, then refit
             result = self._solve(fixes)
             if result is None:

@@ -163,6 +163,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
+        self._standstill: Optional[float] = None if len(config.landmarks.of_kind("aruco")) >= 2 else -math.inf  # its start
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -224,7 +225,11 @@ class Pilot:
         """The mission's decision for now, with the pilot's walk and head where the mission leaves them."""
         t = event.t
         decision = self.mission.tick(t)
-        if decision.phase is Phase.ACTIVE:
+        if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=True):
+            fixes = len(self.calibration.fixes)
+            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self._localize_gaze(t), reason=(
+                f"self-calibration: standing for landmark views ({fixes} of {self.config.self_calibration.min_frames} fixes)"))
+        elif decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
             head = self._landmark_lookout(t)
             if head is None:
@@ -296,7 +301,7 @@ class Pilot:
         if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
-            if self.anchored and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
+            if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image)
         if self.anchored:
@@ -381,6 +386,17 @@ class Pilot:
             return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
+
+    def _calibration_standstill(self, t: float, start: bool = False) -> bool:
+        """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
+        would pass the sway for a calibration error): from the first ACTIVE tick (``start``) until an
+        estimate is applied, ``standstill`` s at most. No keyframe is taken meanwhile."""
+        p = self.config.self_calibration
+        if not p.enabled or self.calibration.applied is not None or (self._standstill is None and not start):
+            return False
+        if self._standstill is None:
+            self._standstill = t
+        return t - self._standstill < p.standstill
 
     def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
         """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""

@@ -3,6 +3,7 @@ pilot or a carver that raises (station.pilot, station.run imported directly; no 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import queue
@@ -31,6 +32,8 @@ from station.topics import CMD_WALK, ERROR, INPUT
 
 MODEL = load_robot_model()
 CONFIG = load_station_config()
+# ACTIVE without the self-calibration standstill (station/pilot.py), for tests of what follows it
+NO_STANDSTILL = dataclasses.replace(CONFIG, self_calibration=dataclasses.replace(CONFIG.self_calibration, standstill=0.0))
 INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
             fps=15.0, state_rate_hz=20.0, deadman_s=0.3)
 W, H = INFO.intrinsics.width, INFO.intrinsics.height
@@ -237,7 +240,7 @@ def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypa
 def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     """The estimate 3 m away asks for a near-horizontal head; the last silhouette was cut by the
     bottom border, so the head pitches down by the bottom row's angle from its capture pitch."""
-    pilot = Pilot(CONFIG, INFO)
+    pilot = Pilot(NO_STANDSTILL, INFO)
     pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=CONFIG.mission.init_pitch)
     pilot.mission.tick(0.0)  # head centred: SEARCH
     pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
@@ -250,3 +253,33 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     vfov_half = math.atan2(INFO.intrinsics.height / 2.0, INFO.intrinsics.fy)
     assert free[1] < 0.5 * vfov_half < low[1]
     assert low == MODEL.head.clamp(free[0], pilot._bottom_row_angle)  # noqa: SLF001
+
+
+def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
+    """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
+    sway for a calibration error), the head alternating between the object and the landmark scan;
+    an applied estimate, or the standstill's end, lets the planner's command through."""
+    assert len(CONFIG.landmarks.of_kind("aruco")) >= 2
+    p = CONFIG.self_calibration
+    pilot = Pilot(CONFIG, INFO)
+    pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=CONFIG.mission.init_pitch)
+    pilot.mission.tick(0.0)
+    pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
+    assert pilot.mission.phase is Phase.ACTIVE
+    pilot.pose = (0.0, 0.0, 0.0)
+    pilot.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
+    pilot.command = (0.08, 0.0, 0.2)  # what the planner wants
+    dwell = CONFIG.mission.gaze_dwell
+    ticks = []
+    for k in range(4):
+        pilot.mission.on_frame(0.2 + k * dwell, object_seen=True, landmark_fix=True, localized=True)
+        ticks.append(pilot.handle(Tick(0.2 + k * dwell)).decision)
+    assert all(d.walk == (0.0, 0.0, 0.0) and d.reason.startswith("self-calibration") for d in ticks)
+    assert len({d.head for d in ticks}) >= 2  # the object, then a landmark-scan yaw
+    over = 0.2 + p.standstill + 0.01  # the standstill is bounded
+    assert not pilot._calibration_standstill(over)  # noqa: SLF001
+    pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
+    assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
+    applied = Pilot(CONFIG, INFO)
+    applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
+    assert not applied._calibration_standstill(0.0, start=True)  # noqa: SLF001

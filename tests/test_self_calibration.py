@@ -1,6 +1,7 @@
 """Self-calibration (agent/self_calibration.py) against ground truth: landmark corners of a user's
 wall layout projected by a camera whose intrinsics differ from the configured ones by a known error,
-from poses around an object, with the torso roll and pixel noise a walking NAO's fixes have."""
+from poses around an object, with the torso roll and pixel noise of a standing NAO's fixes (the
+only ones it stores)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ MAP = load_landmark_map(CONFIG_DIR / "landmarks" / "walls.yaml")
 LOCALIZATION = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
 PARAMS = load(SelfCalibrationParams, [CONFIG_DIR / "self_calibration.yaml"], section="self_calibration")
 PIXEL_NOISE = 0.2  # px per axis, about the corner refinement's
-ROLL = 0.003  # rad, the torso roll T_BC misses (inside the localizer's walking prior)
+ROLL = LOCALIZATION.roll_sigma_still  # rad, the torso roll T_BC misses, standing
 
 
 def observe(rng: np.random.Generator, true_camera: CameraModel) -> Optional[Tuple[Pose, np.ndarray, np.ndarray, np.ndarray]]:
@@ -64,7 +65,7 @@ def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARA
             continue
         pose, T_BC, world, pixels = seen
         localizer.camera = calibration.camera
-        fix = localizer.fit(world, pixels, T_BC)
+        fix = localizer.fit(world, pixels, T_BC, roll_sigma=ROLL)
         if fix is None:
             continue
         errors.append((math.hypot(fix.pose[0] - pose[0], fix.pose[1] - pose[1]), calibration.applied is not None))
@@ -100,9 +101,9 @@ def test_an_exact_calibration_stays_exact():
 def test_a_wrongly_associated_fix_is_dropped_not_believed():
     calibration, _ = mission(np.zeros(4), 30)
     good = calibration.solve()
-    fix = calibration._fixes[-1]
+    fix = calibration.fixes[-1]
     shifted = dataclasses.replace(fix, u=fix.u + np.array([15.0, 0.0]) * np.sign(fix.u[:, :1] - CAMERA.K[0, 2]))
-    calibration._fixes[-1] = shifted  # one fix's points spread 15 px: a wrong marker identity
+    calibration.fixes[-1] = shifted  # one fix's points spread 15 px: a wrong marker identity
     estimate = calibration.solve()
     assert estimate is not None and estimate.frames == good.frames - 1
     assert np.allclose(estimate.c[[0, 1]], good.c[[0, 1]], atol=5e-4)
@@ -123,7 +124,27 @@ def test_fixes_with_too_few_points_are_not_stored(points):
         if seen is not None:
             break
     _, T_BC, world, pixels = seen
-    fix = localizer.fit(world, pixels, T_BC)
+    fix = localizer.fit(world, pixels, T_BC, roll_sigma=ROLL)
     assert fix is not None
     few = dataclasses.replace(fix, inliers=(world[:points], pixels[:points]))
-    assert not calibration.add(few, 1.0) and not calibration._fixes
+    assert not calibration.add(few, 1.0) and not calibration.fixes
+
+
+def test_walking_fixes_are_not_stored():
+    """Walking, the sway the kinematics miss would pass for a calibration error: the localizer's
+    walking roll prior marks such a fix, and it is left out."""
+    calibration = SelfCalibration(PARAMS, CAMERA)
+    localizer = RobotLocalizer(LOCALIZATION, MAP, CAMERA)
+    rng = np.random.default_rng(4)
+    while True:
+        seen = observe(rng, CAMERA)
+        if seen is not None:
+            break
+    _, T_BC, world, pixels = seen
+    walking = localizer.fit(world, pixels, T_BC, roll_sigma=LOCALIZATION.roll_sigma)
+    standing = localizer.fit(world, pixels, T_BC, roll_sigma=LOCALIZATION.roll_sigma_still)
+    assert walking is not None and standing is not None
+    calibration.add(walking, 1.0)
+    assert not calibration.fixes
+    calibration.add(standing, 2.0)
+    assert len(calibration.fixes) == 1
