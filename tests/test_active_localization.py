@@ -5,6 +5,8 @@ it back to the object. The pilot is fed real events; only the localizer's measur
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from types import SimpleNamespace
 
@@ -21,7 +23,9 @@ from station.events import FrameReceived, StateReceived, Tick
 from station.pilot import Pilot
 
 MODEL = load_robot_model()
+# the self-calibration standstill at the start of ACTIVE (tests/test_pilot.py) off: the lookout follows it
 CONFIG = load_station_config()
+CONFIG = dataclasses.replace(CONFIG, self_calibration=dataclasses.replace(CONFIG.self_calibration, standstill=0.0))
 INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
             fps=15.0, state_rate_hz=20.0, deadman_s=0.3)
 W, H = INFO.intrinsics.width, INFO.intrinsics.height
