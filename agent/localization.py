@@ -24,7 +24,7 @@ Planar model. The robot stands on the floor: height, roll and pitch come from th
 (T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
 the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) T_BC with delta a small
 unknown, held by a prior of std ``roll_sigma`` while walking and ``roll_sigma_still`` when the
-odometry did not move since the previous reading (standing: no sway; far markers all at one height
+odometry moved less than ``still_motion`` since the previous reading (standing: no sway; far markers all at one height
 do not tell roll from position, so a loose prior would cost precision for nothing). A point projects as
 
     X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
@@ -140,6 +140,7 @@ class LocalizationParams:
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC (walking)
     roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
+    still_motion: float = field(metadata=bounds(0.0, 0.1))  # m and rad: odometry moving less than this per reading is standing (sensor jitter)
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
     single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
@@ -572,7 +573,7 @@ class RobotLocalizer:
         if not math.isfinite(stamp) or stamp < self._stamp:
             return
         if self._odom is not None:
-            self._moving = bool(np.any(np.abs(relative(self._odom, odom)) > 1e-6))
+            self._moving = bool(np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion))
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
             heading = compose(self._correction, self._odom)[2]

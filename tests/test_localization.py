@@ -27,6 +27,7 @@ from nao_core.geometry import compose, planar_transform, relative, rot_x, wrap_a
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_sim.render import COLOURS_BGR
 from nao_sim.scenarios import Room, load_sim_config
+from nao_core.robot_model import load_robot_model
 from nao_sim.world import SimWorld
 
 
@@ -607,3 +608,16 @@ def test_roll_is_held_tight_while_standing_and_freed_while_walking(params, perce
     walking = localizer.measure(frame.image, frame.T_BC, None, params.roll_sigma)
     assert walking is None or np.trace(walking.covariance) > np.trace(still.covariance)
     assert pose_error(still.pose, world.truth()["robot_pose"])[0] < 2 * math.sqrt(np.linalg.eigvalsh(still.covariance[:2, :2])[-1]) + 0.005
+
+
+def test_a_standing_robots_odometry_jitter_keeps_the_still_roll_prior(params, room):
+    """Sensor odometry of a standing NAO jitters by fractions of a millimetre: still ``still_motion``
+    per reading, it is standing (the tight roll prior; self-calibration stores such fixes); a step of
+    a walk at 0.1 m/s read at 50 Hz (2 mm) is moving."""
+    localizer = RobotLocalizer(params, room, camera_of(load_robot_model(), "qvga"))
+    jitter = 0.4 * params.still_motion
+    localizer.on_odometry((0.0, 0.0, 0.0), 0.0)
+    localizer.on_odometry((jitter, -jitter, jitter), 0.02)
+    assert not localizer._moving  # noqa: SLF001
+    localizer.on_odometry((jitter + 0.1 * 0.02, -jitter, jitter), 0.04)
+    assert localizer._moving  # noqa: SLF001
