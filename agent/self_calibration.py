@@ -31,7 +31,8 @@ the torso sways, rolls and bobs by more than the kinematics report, and a bundle
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
 mission). A mission stands while it searches and localizes; when it finds the object at once, it stands at
 the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and
-the landmark scan (station/pilot.py) until an estimate is applied.
+the landmark scan (station/pilot.py) until an estimate is applied, or sooner when no fix to store
+came for ``standstill_patience`` s (a sparse layout rarely shows two markers at once).
 
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
 on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
@@ -67,6 +68,7 @@ class SelfCalibrationParams:
     outlier_rms_ratio: float = field(metadata=bounds(1.0, 100.0))  # a fix this many times the median RMS is dropped
     iterations: int = field(metadata=bounds(1, 100))
     standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
+    standstill_patience: float = field(metadata=bounds(0.0, 60.0))  # s: ... and no longer than this without a fix to store
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,7 @@ class SelfCalibration:
         self.estimate: Optional[Calibration] = None  # the latest, applied or not
         self.applied: Optional[Calibration] = None
         self.fixes: List[_Fix] = []
+        self.stored = 0  # fixes stored so far (the oldest leave ``fixes``)
         self._new = 0
         self._last_stamp = -np.inf
 
@@ -129,6 +132,7 @@ class SelfCalibration:
         X, u = fix.inliers
         self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
         self._last_stamp = stamp
+        self.stored += 1
         self._new += 1
         if len(self.fixes) < p.min_frames or self._new < p.update_every:
             return False

@@ -164,6 +164,7 @@ class Pilot:
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
         self._standstill: Optional[float] = None if len(config.landmarks.of_kind("aruco")) >= 2 else -math.inf  # its start
+        self._t_stored = -math.inf  # when the self-calibration last stored a fix
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -276,8 +277,11 @@ class Pilot:
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
         if fix is not None:
             with guarded("calibration"):
+                stored = self.calibration.stored
                 if self.calibration.add(fix, meta.stamp):
                     self._recalibrated(step, t)
+                if self.calibration.stored != stored:
+                    self._t_stored = t
         step.outputs.append(PoseRecord(t, meta.seq, meta.stamp, self.pose, tuple(map(float, meta.odom)), fix is not None,
                                        _flat(T_WC), _flat(T_BC), self.anchored))
         with guarded("perception"):
@@ -390,13 +394,14 @@ class Pilot:
     def _calibration_standstill(self, t: float, start: bool = False) -> bool:
         """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
         would pass the sway for a calibration error): from the first ACTIVE tick (``start``) until an
-        estimate is applied, ``standstill`` s at most. No keyframe is taken meanwhile."""
+        estimate is applied, ``standstill`` s at most, and ``standstill_patience`` s at most without
+        a fix to store. No keyframe is taken meanwhile."""
         p = self.config.self_calibration
         if not p.enabled or self.calibration.applied is not None or (self._standstill is None and not start):
             return False
         if self._standstill is None:
             self._standstill = t
-        return t - self._standstill < p.standstill
+        return t - self._standstill < p.standstill and t - max(self._standstill, self._t_stored) < p.standstill_patience
 
     def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
         """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""

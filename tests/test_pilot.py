@@ -258,7 +258,8 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
     """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
     sway for a calibration error), the head alternating between the object and the landmark scan;
-    an applied estimate, or the standstill's end, lets the planner's command through."""
+    an applied estimate, the standstill's end, or no fix to store for its patience, lets the
+    planner's command through."""
     assert len(CONFIG.landmarks.of_kind("aruco")) >= 2
     p = CONFIG.self_calibration
     pilot = Pilot(CONFIG, INFO)
@@ -271,15 +272,21 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     pilot.command = (0.08, 0.0, 0.2)  # what the planner wants
     dwell = CONFIG.mission.gaze_dwell
     ticks = []
+    pilot._t_stored = 0.2 + 3 * dwell  # noqa: SLF001 - fixes to store keep coming
     for k in range(4):
         pilot.mission.on_frame(0.2 + k * dwell, object_seen=True, landmark_fix=True, localized=True)
         ticks.append(pilot.handle(Tick(0.2 + k * dwell)).decision)
     assert all(d.walk == (0.0, 0.0, 0.0) and d.reason.startswith("self-calibration") for d in ticks)
     assert len({d.head for d in ticks}) >= 2  # the object, then a landmark-scan yaw
+    pilot._t_stored = 0.2 + p.standstill - 1.0  # noqa: SLF001 - fixes keep coming: it lasts its full length
+    assert pilot._calibration_standstill(0.2 + p.standstill - 0.01)  # noqa: SLF001
     over = 0.2 + p.standstill + 0.01  # the standstill is bounded
     assert not pilot._calibration_standstill(over)  # noqa: SLF001
     pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
     assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
+    patient = Pilot(CONFIG, INFO)  # no fix to store comes (sparse markers): it ends after the patience
+    assert patient._calibration_standstill(0.0, start=True)  # noqa: SLF001
+    assert not patient._calibration_standstill(p.standstill_patience + 0.01)  # noqa: SLF001
     applied = Pilot(CONFIG, INFO)
     applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
     assert not applied._calibration_standstill(0.0, start=True)  # noqa: SLF001
