@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Dict, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import rot2
@@ -139,6 +140,14 @@ class Scenario:
         """Radius of the smallest vertical cylinder about the object centre that holds the object."""
         pts = self.world_points()
         return float(np.max(np.hypot(pts[:, 0] - self.position[0], pts[:, 1] - self.position[1])))
+
+    @cached_property
+    def mean_half_breadth(self) -> float:
+        """Half the footprint's width averaged over all viewing directions: the radius a filter that
+        fits a cylinder to apparent widths converges to, seen from all round (docs/estimation.md).
+        By Cauchy's formula the mean width of a convex set is its perimeter / pi, so this is the
+        perimeter of the footprint's convex hull / (2 pi); the radius itself for a cylinder."""
+        return float(ConvexHull(self.world_points()[:, :2]).area / (2.0 * math.pi))  # a 2-D hull's "area" is its perimeter
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,9 @@ served by the NAOqi stand-in (``nao_sim.standin.StandIn``) in this process over 
 stand-in with YUV422 frames), with the layout as its landmark map and the configured (not the
 true) camera. Measured against the simulator's truth:
 
-* centre error |(x, y) - (x_true, y_true)| and radius error r - r_true (r_true: the smallest
-  vertical cylinder about the true centre that holds the object);
+* centre error |(x, y) - (x_true, y_true)| and radius error r - r_true, r_true the object's mean
+  half-breadth (``Scenario.mean_half_breadth``: what a cylinder fitted to apparent widths from all
+  round converges to; the radius for a cylinder, less than the enclosing radius for other shapes);
 * IoU of the final model (voxels.npz) with the true object voxelized on the model's lattice, grown
   to hold the whole object (``Scenario.contains``: exact for meshes too);
 * minimum clearance: the least horizontal distance from the true robot origin to the object's
@@ -24,7 +25,10 @@ true) camera. Measured against the simulator's truth:
   whether the robot is at rest when the station has exited.
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
-                           [--doc docs/benchmarks.md]
+                           [--doc docs/benchmarks.md] [--rebuild]
+
+``--rebuild`` runs no mission: it rewrites the table from the runs already in ``--out`` (each
+seed's matrix.json, the radius error recomputed from its result.json), e.g. after an interrupted run.
 
 A benchmark, not a test: a few fixed seeds run in the default suite (tests/test_matrix.py).
 """
@@ -218,7 +222,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     centre_error = radius_error = iou = stop_delay = None
     if estimate:
         centre_error = math.hypot(estimate["x"] - spec.scenario.position[0], estimate["y"] - spec.scenario.position[1])
-        radius_error = estimate["r"] - spec.scenario.radius
+        radius_error = estimate["r"] - spec.scenario.mean_half_breadth
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
@@ -233,6 +237,15 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
                          stopped, str(out))
+
+
+def _stored_result(path: Path, spec: WorldSpec) -> MissionResult:
+    """A mission's matrix.json, its radius error taken again from its result.json (module docstring)."""
+    fields = json.loads(path.read_text())
+    fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
+    result = path.parent / "run" / "result.json"
+    estimate = json.loads(result.read_text()).get("object") if result.exists() else None
+    return MissionResult(**{**fields, "radius_error": estimate["r"] - spec.scenario.mean_half_breadth if estimate else None})
 
 
 def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
@@ -299,11 +312,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--resolution", default=None, help="camera resolution (default: config/station.yaml's)")
     parser.add_argument("--out", type=Path, default=Path("runs/matrix"))
     parser.add_argument("--doc", type=Path, default=Path("docs/benchmarks.md"), help="document whose matrix section is rewritten")
+    parser.add_argument("--rebuild", action="store_true", help="no missions: the table from the runs already in --out")
     args = parser.parse_args(argv)
     if args.count < 1:
         parser.error("--count must be at least 1")
     results = []
     for seed in range(args.first_seed, args.first_seed + args.count):
+        if args.rebuild:
+            stored = args.out / f"seed{seed:03d}" / "matrix.json"
+            if stored.exists():
+                results.append(_stored_result(stored, random_world(seed)))
+            continue
         start = time.monotonic()
         result = run_mission(seed, args.out / f"seed{seed:03d}", args.resolution)
         results.append(result)
