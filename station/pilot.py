@@ -14,6 +14,8 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     localization:  localizer.on_frame(...);  pose = localizer.pose_at(odom at capture), or the
                    odometry itself before the first landmark fix (the odometry frame)
     T_WC = T_WB(pose) T_BC;  cam = (C_x, C_y, psi(T_WC))                 camera on the floor plane
+    calibration:   a fix made standing is stored by agent/self_calibration.py; an estimate applied
+                   switches the camera of every step to the corrected intrinsics (/agent/self_calibration)
     perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
                    the image gives (agent/clearance.py)
     filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize
@@ -27,7 +29,10 @@ are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each 
 is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, is unchanged) and the filter is rebuilt from
 them in order: the estimate of the odometry frame becomes the same estimate in W.
 
-Per ``Tick``: the mission decides (:mod:`agent.mission`); in ACTIVE the walk command is the
+Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
+standstill when the map has two ArUco markers or more: a zero walk and the LOCALIZE gaze until an
+estimate is applied, ``self_calibration.standstill`` s at most and ``standstill_patience`` s
+without a fix to store (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
 and the next yaw of the landmark scan.
