@@ -18,7 +18,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    switches the camera of every step to the corrected intrinsics (/agent/self_calibration)
     perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
                    the image gives (agent/clearance.py)
-    filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize
+    filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize; none once the
+                   mission has decided (DONE, STOPPING: the same view again and again while the robot
+                   stops must not move, let alone re-initialize, the estimate decided on)
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
                    measured and agent.keyframes.KeyframePool keeps it: its viewing azimuth
                    a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle,
@@ -307,7 +309,8 @@ class Pilot:
                     if not (silhouette.touches_bottom and self._near is not None
                             and math.dist(self._near, meta.odom[:2]) < math.dist(near, meta.odom[:2])):
                         self._near = near  # a bottom-cut view (an upper bound) never replaces a nearer point
-        if measurement is not None and measurement.bearing_valid:  # a side-cut silhouette gives neither bearing nor width
+        decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
+        if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve

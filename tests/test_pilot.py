@@ -290,3 +290,31 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     applied = Pilot(CONFIG, INFO)
     applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
     assert not applied._calibration_standstill(0.0, start=True)  # noqa: SLF001
+
+
+def test_after_the_decision_frames_no_longer_change_the_estimate():
+    """The estimate the mission decided on is its result: frames while the robot stops (one
+    standpoint: the same view again and again, which once re-initialized a figure's estimate after
+    the decision, matrix seed 5) neither update it nor add keyframes."""
+    now = [0.0]
+    world = SimWorld("can", MODEL, "qvga", seed=1, clock=lambda: now[0])
+    pose = world.start_pose
+    world.teleport(pose, head=MODEL.look_at(pose, (*world.scenario.position, 0.1)))
+    pilot = Pilot(NO_STANDSTILL, INFO)
+
+    def feed(count: int) -> list:
+        records = []
+        for _ in range(count):
+            now[0] += 0.15
+            shot = world.render()
+            records += pilot.handle(FrameReceived(now[0], frame(int(now[0] * 100), jpeg(shot.image), shot.T_BC.ravel(), shot.odom,
+                                                                shot.stamp))).outputs
+        return records
+
+    feed(10)
+    assert pilot.ekf.initialized and pilot.ekf.stats.accepted >= 5
+    pilot.mission._enter(Phase.DONE, now[0])  # noqa: SLF001 - the goal reached
+    x, accepted = pilot.ekf.x.copy(), pilot.ekf.stats.accepted
+    records = feed(10)
+    assert np.array_equal(pilot.ekf.x, x) and pilot.ekf.stats.accepted == accepted
+    assert not [r for r in records if type(r).__name__ in ("MeasurementRecord", "KeyframeRecord")]
