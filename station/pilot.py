@@ -32,7 +32,8 @@ is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, i
 them in order: the estimate of the odometry frame becomes the same estimate in W.
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
-standstill when the map has two ArUco markers or more: a zero walk and the LOCALIZE gaze until an
+standstill when the map has two ArUco markers or more, from the first tick with an object estimate
+(a side-cut sighting alone gives none, and the scan would look away from it): a zero walk and the LOCALIZE gaze until an
 estimate is applied, ``self_calibration.standstill`` s at most and ``standstill_patience`` s
 without a fix to store (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
@@ -401,11 +402,11 @@ class Pilot:
 
     def _calibration_standstill(self, t: float, start: bool = False) -> bool:
         """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
-        would pass the sway for a calibration error): from the first ACTIVE tick (``start``) until an
-        estimate is applied, ``standstill`` s at most, and ``standstill_patience`` s at most without
+        would pass the sway for a calibration error): from the first ACTIVE tick (``start``) with an
+        object estimate (its even gaze dwells keep the object in view) until an estimate is applied, ``standstill`` s at most, and ``standstill_patience`` s at most without
         a fix to store. No keyframe is taken meanwhile."""
         p = self.config.self_calibration
-        if not p.enabled or self.calibration.applied is not None or (self._standstill is None and not start):
+        if not p.enabled or self.calibration.applied is not None or (self._standstill is None and not (start and self.ekf.initialized)):
             return False
         if self._standstill is None:
             self._standstill = t

@@ -285,9 +285,12 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
     assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
     patient = Pilot(CONFIG, INFO)  # no fix to store comes (sparse markers): it ends after the patience
+    assert not patient._calibration_standstill(0.0, start=True)  # noqa: SLF001 - no estimate yet: following the sighting comes first
+    patient.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     assert patient._calibration_standstill(0.0, start=True)  # noqa: SLF001
     assert not patient._calibration_standstill(p.standstill_patience + 0.01)  # noqa: SLF001
     applied = Pilot(CONFIG, INFO)
+    applied.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
     assert not applied._calibration_standstill(0.0, start=True)  # noqa: SLF001
 
