@@ -50,6 +50,14 @@ def observe(rng: np.random.Generator, true_camera: CameraModel) -> Optional[Tupl
     return pose, T_BC, np.vstack(world), np.vstack(pixels) + rng.normal(0.0, PIXEL_NOISE, (4 * len(world), 2))
 
 
+def first_view(seed: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T_BC, world points, pixels) of the first pose drawn from ``seed`` that shows two markers, exact camera."""
+    rng = np.random.default_rng(seed)
+    while (seen := observe(rng, CAMERA)) is None:
+        pass
+    return seen[1:]
+
+
 def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARAMS, seed: int = 0):
     """Fixes as a mission makes them (the localizer on the calibration's current camera), fed to a
     SelfCalibration: (it, [(position error m, applied) per fix])."""
@@ -118,12 +126,7 @@ def test_disabled_it_never_changes_the_camera():
 def test_fixes_with_too_few_points_are_not_stored(points):
     calibration = SelfCalibration(PARAMS, CAMERA)
     localizer = RobotLocalizer(LOCALIZATION, MAP, CAMERA)
-    rng = np.random.default_rng(3)
-    while True:
-        seen = observe(rng, CAMERA)
-        if seen is not None:
-            break
-    _, T_BC, world, pixels = seen
+    T_BC, world, pixels = first_view(3)
     fix = localizer.fit(world, pixels, T_BC, roll_sigma=ROLL)
     assert fix is not None
     few = dataclasses.replace(fix, inliers=(world[:points], pixels[:points]))
@@ -135,12 +138,7 @@ def test_walking_fixes_are_not_stored():
     walking roll prior marks such a fix, and it is left out."""
     calibration = SelfCalibration(PARAMS, CAMERA)
     localizer = RobotLocalizer(LOCALIZATION, MAP, CAMERA)
-    rng = np.random.default_rng(4)
-    while True:
-        seen = observe(rng, CAMERA)
-        if seen is not None:
-            break
-    _, T_BC, world, pixels = seen
+    T_BC, world, pixels = first_view(4)
     walking = localizer.fit(world, pixels, T_BC, roll_sigma=LOCALIZATION.roll_sigma)
     standing = localizer.fit(world, pixels, T_BC, roll_sigma=LOCALIZATION.roll_sigma_still)
     assert walking is not None and standing is not None
