@@ -335,7 +335,8 @@ def test_log_of_a_killed_writer_reads_up_to_its_last_flush(tmp_path):
 
 
 def start_station(tmp_path: Path, port: int) -> subprocess.Popen:
-    (tmp_path / "station.yaml").write_text(f"station:\n  port: {port}\n")
+    # the robot walking at once, not standing for the self-calibration first (station/pilot.py)
+    (tmp_path / "station.yaml").write_text(f"station:\n  port: {port}\nself_calibration:\n  standstill: 0.0\n")
     return subprocess.Popen([PY, "-m", "station.cli", "start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"),
                              "--config", str(tmp_path / "station.yaml")],
                             stdout=subprocess.DEVNULL, stderr=open(tmp_path / "station.err", "wb"))

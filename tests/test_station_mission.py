@@ -66,9 +66,13 @@ def station(*args: str, stderr: Optional[Path] = None) -> subprocess.Popen:
     return subprocess.Popen([PY, "-m", "station.cli", *args], stdout=subprocess.PIPE, stderr=err)
 
 
-def write_override(path: Path, port: int, **mission: float) -> Path:
+# Failure tests need the robot walking, not the self-calibration standstill that opens ACTIVE (station/pilot.py)
+NO_STANDSTILL = "self_calibration:\n  standstill: 0.0\n"
+
+
+def write_override(path: Path, port: int, standstill: bool = True, **mission: float) -> Path:
     lines = ["station:", f"  port: {port}", "mission:"] + [f"  {k}: {v}" for k, v in mission.items()]
-    path.write_text("\n".join(lines if mission else lines[:-1]) + "\n")
+    path.write_text("\n".join(lines if mission else lines[:-1]) + "\n" + ("" if standstill else NO_STANDSTILL))
     return path
 
 
@@ -315,7 +319,7 @@ def sim_bridge():
 
 
 def start_station(tmp_path: Path, port: int, **mission: float) -> subprocess.Popen:
-    override = write_override(tmp_path / "station.yaml", port, **mission)
+    override = write_override(tmp_path / "station.yaml", port, standstill=False, **mission)
     return station("start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"), "--config", str(override),
                    stderr=tmp_path / "err")
 
