@@ -188,7 +188,7 @@ class SelfCalibration:
                 if np.abs(dc).max() < 1e-7:
                     break
             camera = corrected(self.configured, c)
-            residuals = [self._linearize(camera, K0, fix, pose)[0] for fix, pose in zip(fixes, poses)]
+            residuals = [self._residual(camera, fix, pose) for fix, pose in zip(fixes, poses)]
         except (np.linalg.LinAlgError, NoFix):
             return None
         if not np.all(np.isfinite(c)):
@@ -200,17 +200,23 @@ class SelfCalibration:
         covariance = s2 * np.linalg.inv(S)
         return Calibration(c, covariance, len(fixes), float(np.sqrt(np.mean(np.concatenate(residuals) ** 2) * 2.0))), rms
 
-    def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
-        """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
-        model = PlanarModel(camera, fix.T_BC)
-        uv, z, J = model.jacobian(pose, fix.X)
+    @staticmethod
+    def _residual(camera: CameraModel, fix: _Fix, pose: np.ndarray) -> np.ndarray:
+        """Residuals (2N) of one fix at (c, pose), no Jacobian."""
+        uv, z = PlanarModel(camera, fix.T_BC).project(pose, fix.X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point behind the camera")
-        X_C, _ = model.to_camera(pose, fix.X)
-        n = len(fix.X)
-        Jc = np.zeros((n, 2, 4))
-        Jc[:, 0, 0] = K0[0, 0] * X_C[:, 0] / z
-        Jc[:, 1, 1] = K0[1, 1] * X_C[:, 1] / z
+        return (uv - fix.u).ravel()
+
+    def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
+        """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
+        uv, z, J = PlanarModel(camera, fix.T_BC).jacobian(pose, fix.X)
+        if np.any(z < MIN_DEPTH):
+            raise NoFix("landmark point behind the camera")
+        K = camera.K
+        Jc = np.zeros((len(fix.X), 2, 4))
+        Jc[:, 0, 0] = K0[0, 0] * (uv[:, 0] - K[0, 2]) / K[0, 0]  # f_x x/z, the normalised point from the projection
+        Jc[:, 1, 1] = K0[1, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]
         Jc[:, 0, 2] = 1.0
         Jc[:, 1, 3] = 1.0
         w2 = (self.params.pixel_sigma / fix.roll_sigma) ** 2
