@@ -147,7 +147,7 @@ def pose_errors(poses: List[dict], trace: List[Tuple[float, float, float, float]
 def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarray], spec: WorldSpec,
                     resolution: str) -> Optional[Tuple[float, float]]:
     """(median, maximum) over the carve's keyframes of how far (px) the object's centre at mid-height,
-    seen through the logged T_WC and the configured camera, lands from where the true camera of that
+    seen through the logged T_WC and K (the configured one in logs without), lands from where the true camera of that
     capture sees it: the misalignment the carve suffers. ``poses``: the log's /agent/pose records."""
     stamps = {record["seq"]: record["stamp"] for record in poses}
     camera = CameraModel.from_intrinsics(load_robot_model().camera.intrinsics(resolution))
@@ -164,7 +164,9 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
         nearest = captured[np.argmin(np.abs(captured - stamp))]
         if abs(nearest - stamp) > 0.005:
             continue
-        logged, _ = camera.project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
+        seen_with = camera if record.get("K") is None else dataclasses.replace(
+            camera, K=np.asarray(record["K"], dtype=float).reshape(3, 3))  # the self-calibrated K the carve uses
+        logged, _ = seen_with.project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
         true, _ = true_camera.project_world(centre, renders[nearest])
         shifts.append(float(np.hypot(*(logged[0] - true[0]))))
     return (float(np.median(shifts)), float(np.max(shifts))) if shifts else None
@@ -222,7 +224,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     centre_error = radius_error = iou = stop_delay = None
     if estimate:
         centre_error = math.hypot(estimate["x"] - spec.scenario.position[0], estimate["y"] - spec.scenario.position[1])
-        radius_error = estimate["r"] - spec.scenario.mean_half_breadth
+        radius_error = _radius_error(estimate, spec)
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
@@ -245,7 +247,12 @@ def _stored_result(path: Path, spec: WorldSpec) -> MissionResult:
     fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
     result = path.parent / "run" / "result.json"
     estimate = json.loads(result.read_text()).get("object") if result.exists() else None
-    return MissionResult(**{**fields, "radius_error": estimate["r"] - spec.scenario.mean_half_breadth if estimate else None})
+    return MissionResult(**{**fields, "radius_error": _radius_error(estimate, spec) if estimate else None})
+
+
+def _radius_error(estimate: dict, spec: WorldSpec) -> float:
+    """r - r_true against the object's mean half-breadth (module docstring)."""
+    return estimate["r"] - spec.scenario.mean_half_breadth
 
 
 def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
