@@ -55,6 +55,10 @@ been consistent over n_restart views in a row, with n the views fused since the 
 
     n_restart = clip(ceil(reinitialize_fraction * n), reinitialize_after, reinitialize_max)
 
+and when those views have located it: its centre's largest std is at most inverse_range_switch
+times its range from the camera (the filter's own test for leaving inverse range). Views without
+parallax (the robot turning in place) fix a bearing, not a range, and never restart.
+
 Expected covariance for the planner: K candidate camera sequences of D steps rolled forward with
 noise-free observations at the mean (zero innovation: only the covariance evolves)::
 
@@ -635,12 +639,17 @@ class ObjectEKF:
         self.stats.rejected_in_a_row = 0
         return UpdateResult(True, step.nis, dof, nu, note)
 
+    def _located(self, state: State, cam: np.ndarray) -> bool:
+        """The centre's largest std is at most ``inverse_range_switch`` times its range from ``cam``."""
+        x, P = state.cartesian()
+        return position_std(P) <= self.params.inverse_range_switch * math.hypot(x[0] - cam[0], x[1] - cam[1])
+
     def _inconsistent(
         self, cam: np.ndarray, z: np.ndarray, R: np.ndarray, nis: Optional[float], nu: np.ndarray, reason: str
     ) -> UpdateResult:
         """A valid view the estimate cannot explain: it extends the alternative hypothesis (or starts
         a new one if the alternative cannot explain it either); once the alternative has explained
-        ``restart_views`` in a row, it replaces the estimate."""
+        ``restart_views`` in a row and is located (:meth:`_located`), it replaces the estimate."""
         if nis is None:
             self.stats.invalid += 1
         else:
@@ -653,7 +662,7 @@ class ObjectEKF:
             self._alternative = initial_state(self.params, cam, float(z[0]), float(z[1]) if len(z) == 2 else None)
             self._streak = 1
         needed = self.restart_views
-        if self._streak < needed:
+        if self._streak < needed or not self._located(self._alternative, cam):
             self.stats.rejected_in_a_row += 1
             return UpdateResult(False, nis, nu.size, nu if nis is not None else None, reason)
         self._state, self._alternative = self._alternative, None

@@ -299,6 +299,28 @@ def test_five_bad_views_do_not_erase_an_estimate_built_from_hundreds():
     assert np.hypot(*(ekf.x[:2] - phantom[:2])) < np.hypot(*(built.x[:2] - phantom[:2]))  # now on the phantom's side
 
 
+def test_views_without_parallax_never_restart_however_many():
+    """Issue 12 (matrix seed 27): the robot turning in place sees something else, consistently.
+    From one spot its views fix a bearing, not a range, so the alternative they build is not
+    located and never replaces the estimate; the same views from a walk restart it."""
+    truth, phantom = np.array([1.0, 0.0, 0.05]), np.array([0.2, 1.2, 0.05])
+    ekf = ObjectEKF(PARAMS)
+    cams = circling_cameras(truth[:2], 0.6, 20)
+    ekf.initialize(cams[0], *measure(truth, cams[0]))
+    assert all(ekf.update(cam, *measure(truth, cam)).accepted for cam in cams[1:])
+    built = ekf.copy()
+    spot = cams[-1][:2]
+    turning = [np.array([*spot, psi]) for psi in np.linspace(1.2, 1.8, 40)]  # phantom in view, head still
+    for cam in turning:
+        ekf.update(cam, *measure(phantom, cam))
+    assert ekf.stats.gated == 40 and ekf.stats.reinitialized == 0
+    np.testing.assert_array_equal(ekf.x, built.x)
+    walk = [np.array([spot[0] + 0.02 * k, spot[1], 1.5]) for k in range(40)]  # 0.8 m sideways
+    results = [ekf.update(cam, *measure(phantom, cam)) for cam in walk]
+    assert ekf.stats.reinitialized == 1 and any(r.reason.startswith("re-initialized after") for r in results)
+    np.testing.assert_allclose(ekf.x[:2], phantom[:2], atol=0.02)
+
+
 def test_inconsistent_views_that_disagree_with_each_other_never_restart():
     """Random gross outliers (no consistent alternative) never replace an estimate, however many."""
     truth = np.array([1.0, 0.0, 0.05])

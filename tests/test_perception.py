@@ -286,6 +286,9 @@ def temple_views():
             yield name, values[:9].reshape(3, 3), values[9:18].reshape(3, 3), values[18:21]
 
 
+WIDTH_TOLERANCE = 0.005  # m: the model's width target (issue 13, docs/benchmarks.md "model")
+
+
 @pytest.mark.usefixtures("middlebury_temple")  # a missing data set fails with its path
 def test_temple_silhouettes_lie_inside_the_projected_bounding_box(params):
     """16 real views, near-black background: a 'bright' class (any hue, some saturation and light)."""
@@ -303,10 +306,12 @@ def test_temple_silhouettes_lie_inside_the_projected_bounding_box(params):
         uv = (corners @ R.T + t) @ K.T
         box = np.zeros_like(silhouette.mask)
         cv2.fillConvexPoly(box, cv2.convexHull(np.round(uv[:, :2] / uv[:, 2:]).astype(np.int32)), 255)
-        # The published box is tight and the calibration not perfect: allow 8 px (3 mm at 0.6 m);
-        # measured at most 7 px, on a thin band along one side (docs/perception.md).
+        # A silhouette may overstate the object by no more than the model may (issue 13: width
+        # within 5 mm, so 2.5 mm a side), seen at the box's nearest corner, plus the rounding of
+        # the box polygon to whole pixels (half a pixel diagonal).
+        allowed = 0.5 * WIDTH_TOLERANCE * K[0, 0] / (corners @ R.T + t)[:, 2].min() + math.sqrt(0.5)
         outside = cv2.distanceTransform(255 - box, cv2.DIST_L2, 5)[silhouette.mask > 0].max()
-        assert outside <= 8.0, f"{name}: silhouette reaches {outside:.1f} px outside the projected box"
+        assert outside <= allowed, f"{name}: silhouette reaches {outside:.1f} px outside the projected box (allowed {allowed:.1f})"
         assert silhouette.area > 0.3 * np.count_nonzero(box), f"{name}: silhouette too small"
 
 
