@@ -389,6 +389,7 @@ def test_bridge_frozen_mid_mission_ends_it_cleanly_as_bridge_lost(tmp_path):
         bridge.close(grace=2.0)
     result = json.loads((tmp_path / "run" / "result.json").read_text())
     assert result["status"] == "failure" and result["outcome"] == "bridge_lost"
+    assert "liveliness" in result["reason"]  # the lease ran out (a killed bridge: tests/test_station_cli.py)
     lost = [m.json()["t"] for m in read_log(tmp_path / "run" / "run.mcap", topics={INPUT})
             if m.json()["kind"] == "bridge_lost"]
     assert len(lost) == 1 and lost[0] - frozen <= NOTICE_WITHIN  # then the final carve and outputs
