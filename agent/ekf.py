@@ -79,7 +79,7 @@ from typing import Callable, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from numba import njit
-from scipy.stats import chi2
+from scipy.special import chdtri  # inverse chi-square survival: chi2.ppf(p, k) = chdtri(k, 1 - p)
 
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import wrap_angle
@@ -509,7 +509,7 @@ class ObjectEKF:
         self._alternative: Optional[State] = None  # filtered from the current streak of inconsistent views
         self._streak = 0  # views in a row the alternative explains and the estimate does not
         self._fused = 0  # views fused since the last (re)start
-        self._gate = {dof: float(chi2.ppf(params.gate_probability, dof)) for dof in (1, 2)}
+        self._gate = {dof: float(chdtri(dof, 1.0 - params.gate_probability)) for dof in (1, 2)}
         self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
 
     @classmethod

@@ -50,7 +50,6 @@ from station.launch import BridgeFailed, LocalBridge, wait_for_info
 from station.link import BridgeLink, Received
 from station.mcap_log import LogError, McapLog
 from station.replay import replay
-from station.report import write_report
 from station.result import (
     EXIT_CONFIG,
     EXIT_FAILURE,
@@ -342,6 +341,8 @@ def _outputs(summary: RunSummary, out: Path, resolution: str) -> int:
         files["voxels"] = summary.carver.save_npz(out / "voxels.npz").name
     if log_path.exists():
         try:
+            from station.report import write_report  # matplotlib: imported by the commands that draw only
+
             files["report"] = [p.name for p in write_report(log_path, out, mesh)]
         except Exception as exc:  # noqa: BLE001 - a figure must never cost the result
             files["report_error"] = f"{type(exc).__name__}: {exc}"
@@ -384,6 +385,8 @@ def carve_command(args: argparse.Namespace) -> int:
 
 
 def report_command(args: argparse.Namespace) -> int:
+    from station.report import write_report
+
     for path in write_report(args.log, args.out or args.log.parent):
         print(path)
     return 0
