@@ -45,17 +45,17 @@ the NumPy level-by-level version of the same walk took 3.5 times the CPU time (d
 Incremental = batch. A voxel's fate depends only on how many views say it is empty, whatever
 their order, so adding views one at a time (live) or all at once (offline) gives the same grid.
 
-Consistent tolerance (the final carve). The true object projects exactly onto every silhouette, so
-the hull of consistent views covers each of them: its coverage of view i,
+Consistent tolerance (the final carve). The true object projects exactly onto every silhouette;
+a hull carved at tolerance k re-projects onto view i with the agreement
 
-    c_i(k) = |S_i  and  proj(H_k)| / |S_i|     (proj: voxel centres, grown by half a voxel's image),
+    a_i(k) = |S_i  and  proj(H_k)| / |S_i  or  proj(H_k)|     (proj: voxel centres, grown by half a voxel's image),
 
-is near 1 for every i. Keyframe poses off by centimetres (a far, sparse landmark layout) make the
-views disagree: each carves what the others saw, and c_i falls (median 0.4-0.7 in such runs,
-against 0.998 with consistent poses). :func:`carve_consistent` carves once with
-k_max = ``tolerance_max`` (counts are exact up to k_max + 1) and keeps the smallest k from
-``tolerance`` up whose hull has median_i c_i(k) >= ``min_coverage``, else k_max: as tight as the
-views allow, and no tighter.
+near 1 for every i with consistent views. Keyframe poses off by centimetres (a far, sparse
+landmark layout) make the views disagree: each carves what the others saw, the hull loses parts
+of the object and a_i falls; a larger k keeps them, until the hull grows past the silhouettes and
+a_i falls again. :func:`carve_consistent` carves once with k_max = ``tolerance_max`` (counts are
+exact up to k_max + 1) and keeps the k in [``tolerance``, k_max] of largest mean_i a_i(k) (the
+smallest such k on a tie): the hull that best re-projects onto its own silhouettes.
 """
 
 from __future__ import annotations
@@ -97,7 +97,6 @@ class CarvingParams:
     max_height: float = field(metadata=bounds(1e-3, 10.0))
     tolerance: int = field(metadata=bounds(0, 200))
     tolerance_max: int = field(metadata=bounds(0, 200))  # the final carve's k may grow to this (carve_consistent)
-    min_coverage: float = field(metadata=bounds(0.0, 1.0))  # median share of each silhouette the final hull covers
     octree_levels: int = field(metadata=bounds(0, 10))
     max_voxels: int = field(metadata=bounds(1, 1 << 31))
     dilation: int = field(metadata=bounds(0, 50))
@@ -400,20 +399,21 @@ class VoxelCarver:
         view._occupancy = None
         return view
 
-    def silhouette_coverage(self, views: Sequence[View]) -> np.ndarray:
-        """c_i per view: the share of its silhouette (on the pinhole) that the hull's projection covers
-        (module docstring); 1.0 for an empty silhouette."""
-        return self._coverage(_pinhole_views(views))
+    def silhouette_agreement(self, views: Sequence[View]) -> np.ndarray:
+        """a_i per view: the IoU of its silhouette (on the pinhole) and the hull's projection (module
+        docstring); 1.0 when both are empty."""
+        return self._agreement(_pinhole_views(views))
 
-    def _coverage(self, pinholes: Sequence[View]) -> np.ndarray:
-        """:meth:`silhouette_coverage` of views whose masks are already bool pinhole silhouettes."""
+    def _agreement(self, pinholes: Sequence[View]) -> np.ndarray:
+        """:meth:`silhouette_agreement` of views whose masks are already bool pinhole silhouettes."""
         centres = self.origin + self.pitch * np.argwhere(self.occupancy)
-        coverage = np.ones(len(pinholes))
+        agreement = np.ones(len(pinholes))
         for i, (silhouette, camera, T_WC) in enumerate(pinholes):
-            if silhouette.any():
-                projection = _project_centres(centres, self.pitch, camera, T_WC, silhouette.shape, 0)
-                coverage[i] = np.count_nonzero(silhouette & projection) / np.count_nonzero(silhouette)
-        return coverage
+            projection = _project_centres(centres, self.pitch, camera, T_WC, silhouette.shape, 0)
+            union = np.count_nonzero(silhouette | projection)
+            if union:
+                agreement[i] = np.count_nonzero(silhouette & projection) / union
+        return agreement
 
     def to_mesh(self) -> trimesh.Trimesh:
         """Closed, smooth mesh of the hull (marching cubes on the smoothed occupancy, agent/mesh.py), world units."""
@@ -479,16 +479,14 @@ def carve_consistent(
     footprint: Optional[Tuple[float, float, float]] = None,
     images: Sequence[Optional[np.ndarray]] = (),
 ) -> VoxelCarver:
-    """The final carve at the smallest tolerance whose hull covers the silhouettes (module docstring)."""
+    """The final carve at the tolerance whose hull best re-projects onto the silhouettes (module docstring)."""
     views = list(views)
     top = carve(views, bounds_min, bounds_max, pitch, dataclasses.replace(params, tolerance=params.tolerance_max),
                 footprint, images)
     pinholes = _pinhole_views(views)  # resampled once for every k tried
-    for k in range(params.tolerance, params.tolerance_max):
-        hull = top.at_tolerance(k)
-        if np.median(hull._coverage(pinholes)) >= params.min_coverage:
-            return hull
-    return top
+    tolerances = range(min(params.tolerance, params.tolerance_max), params.tolerance_max + 1)
+    agreement = [float(np.mean(top.at_tolerance(k)._agreement(pinholes))) for k in tolerances]
+    return top.at_tolerance(tolerances[int(np.argmax(agreement))])
 
 
 def _pinhole_views(views: Sequence[View]) -> List[View]:

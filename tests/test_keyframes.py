@@ -125,8 +125,9 @@ def test_the_final_carve_keeps_the_precise_views_and_the_object():
 
 def test_the_final_carve_raises_its_tolerance_only_as_far_as_the_views_disagree():
     """carve_consistent: exact views keep the configured k (the tightest hull); views whose poses are
-    off by 3 cm, alternately left and right, leave the silhouettes uncovered at that k, and k grows
-    until the hull covers them again, keeping the can that the fixed k eats into."""
+    off by 3 cm, alternately left and right, carve the can at that k, so its hull re-projects badly,
+    and k grows, keeping the can that the fixed k eats into; a larger k than the chosen one would
+    re-project worse (the hull grows past the silhouettes)."""
     from agent.camera import CameraModel
     from agent.carving import carve, carve_consistent
     from tests.carving_scenes import Cylinder, render_mask, ring_poses
@@ -149,8 +150,42 @@ def test_the_final_carve_raises_its_tolerance_only_as_far_as_the_views_disagree(
         return float(carver.occupancy[tuple(index.T)].mean())
 
     tight = carve_consistent(exact, *box, None, params)
-    assert tight.params.tolerance == params.tolerance and np.median(tight.silhouette_coverage(exact)) >= params.min_coverage
+    assert tight.params.tolerance == params.tolerance
     fixed = carve(off, *box, None, params)
-    assert np.median(fixed.silhouette_coverage(off)) < params.min_coverage and kept(fixed) < 0.9
+    assert kept(fixed) < 0.9
     grown = carve_consistent(off, *box, None, params)
     assert params.tolerance < grown.params.tolerance <= params.tolerance_max and kept(grown) > kept(fixed)
+    top = carve(off, *box, None, dataclasses.replace(params, tolerance=params.tolerance_max))
+    agreement = {k: np.mean(top.at_tolerance(k).silhouette_agreement(off)) for k in range(params.tolerance, params.tolerance_max + 1)}
+    assert agreement[grown.params.tolerance] == max(agreement.values()) > agreement[params.tolerance]
+
+
+def test_a_thin_limbed_figure_keeps_the_tolerance_its_views_support():
+    """Issue 13: the figure's 6 mm arm is a large share of its silhouettes and a small one of its
+    volume. Keyframe poses off by a few millimetres cut the arm from the hull at every k, so the
+    silhouettes are never fully covered, and a rule "raise k until they are" went to tolerance_max
+    and bloated the body (IoU 0.62 instead of 0.73 on a mission). The hull that best re-projects
+    onto the silhouettes stops below it and is nearer the true figure."""
+    from agent.camera import CameraModel
+    from agent.carving import carve, carve_consistent
+    from tests.carving_scenes import render_mask, ring_poses
+    from tests.test_carving import FLOOR_HI, FLOOR_LO, FLOOR_SHAPES
+
+    figure = FLOOR_SHAPES["figure"]
+    camera = CameraModel.from_fov(320, 240, math.radians(60.97))
+    params = dataclasses.replace(PARAMS, pitch=0.003, floor_prior=False)
+    rng = np.random.default_rng(0)
+    views = []
+    for T in ring_poses((0.0, 0.0, 0.10), 0.7, 36, (0.0,)):
+        wrong = T.copy()
+        wrong[:3, 3] += rng.normal(0.0, 0.004, 3)  # a keyframe pose's few millimetres
+        views.append((render_mask(figure, camera, T, (FLOOR_LO, FLOOR_HI)), camera, wrong))
+    top = carve(views, FLOOR_LO, FLOOR_HI, None, dataclasses.replace(params, tolerance=params.tolerance_max))
+    truth = figure.contains(top.origin + top.pitch * np.argwhere(np.ones(top.occupancy.shape, bool))).reshape(top.occupancy.shape)
+
+    def iou(carver) -> float:
+        return float(np.count_nonzero(carver.occupancy & truth) / np.count_nonzero(carver.occupancy | truth))
+
+    chosen = carve_consistent(views, FLOOR_LO, FLOOR_HI, None, params)
+    assert chosen.params.tolerance < params.tolerance_max
+    assert iou(chosen) > iou(top) + 0.02
