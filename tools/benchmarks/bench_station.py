@@ -33,7 +33,8 @@ def measure(duration: float = DURATION, resolution: str = "vga") -> dict:
         out = Path(tmp)
         (out / "bridge.yaml").write_text(f"bridge:\n  resolution: {resolution}\n  fps: 15.0\n")
         bridge = LocalBridge(["--sim", "--scenario", "can", "--config", str(out / "bridge.yaml")], out / "bridge.log")
-        transport = TransportConfig(connect=(bridge.endpoint,), lease_ms=config.station.lease_ms)
+        # the started bridge has the default security (docs/security.md): the station user and password
+        transport = TransportConfig.with_credentials("station", connect=(bridge.endpoint,), lease_ms=config.station.lease_ms)
         link = BridgeLink(transport, config.station.robot_name)
         try:
             info, info_bytes = link.fetch_info(config.station.bridge_timeout)
