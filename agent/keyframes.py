@@ -22,6 +22,13 @@ kept one (a new direction), or when its quality is at least twice that of every 
 ``min_angle`` (a better view of a direction seen: a fresh fix, an uncut silhouette). Quality is at
 most 1, so a direction gains at most log2(1 / q_min) such views: the pool is bounded.
 
+Consistency with the final estimate (final carve, :func:`axis_in_view`): the object's vertical axis
+through the estimated centre o, {(o_x, o_y, z), 0 <= z <= z_max}, lies inside the object, so with a
+right pose its image crosses the silhouette. A keyframe whose axis image misses its silhouette
+entirely has a pose off by more than the object's half-width (a wrong landmark association): with
+the carve's tolerance of a few views, a handful of such keyframes would carve the whole object
+away, so they are left out.
+
 Selection (final carve, :func:`select_keyframes`): azimuths around the *final* estimate; greedy
 gap filling weighted by quality. Start with the best view; then repeatedly add the view i that
 maximises q_i g_i, g_i = min_{j in S} |wrap(a_i - a_j)| (the largest gap it fills), until
@@ -121,3 +128,16 @@ def view_azimuth(T_WC: np.ndarray, centre_xy: Sequence[float]) -> float:
     """Viewing azimuth atan2(C - o) of a camera pose around the object centre o."""
     c = np.asarray(T_WC, dtype=float)[:3, 3]
     return math.atan2(c[1] - float(centre_xy[1]), c[0] - float(centre_xy[0]))
+
+
+def axis_in_view(mask: np.ndarray, camera, T_WC: np.ndarray, centre_xy: Sequence[float], top: float,
+                 samples: int = 200) -> bool:
+    """Does the image of the vertical axis through ``centre_xy`` (0 <= z <= ``top``) cross the
+    silhouette ``mask`` (module docstring)? ``camera``: the keyframe's agent.camera.CameraModel."""
+    points = np.column_stack([np.full(samples, centre_xy[0]), np.full(samples, centre_xy[1]), np.linspace(0.0, top, samples)])
+    uv, in_front = camera.project_world(points, T_WC)
+    pixels = np.round(uv[in_front]).astype(int)
+    height, width = mask.shape[:2]
+    inside = (pixels[:, 0] >= 0) & (pixels[:, 0] < width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < height)
+    pixels = pixels[inside]
+    return bool(pixels.size) and bool(np.any(mask[pixels[:, 1], pixels[:, 0]]))

@@ -31,7 +31,7 @@ from agent.carving import (
     volume_bounds,
 )
 from agent.ekf import position_std
-from agent.keyframes import select_keyframes, view_azimuth
+from agent.keyframes import axis_in_view, select_keyframes, view_azimuth
 
 View = Tuple[np.ndarray, CameraModel, np.ndarray]
 
@@ -41,13 +41,19 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
                 qualities: Sequence[float] = ()) -> VoxelCarver:
     """The final model: the chosen views carved in the volume around the estimate (x, P).
 
-    The views are chosen by :func:`agent.keyframes.select_keyframes` from their azimuths around x and
-    their ``qualities`` (one per view, agent/keyframes.py; all 1 when not given). Raises ValueError when
+    Views whose pose the estimate contradicts (the axis through x misses their silhouette,
+    :func:`agent.keyframes.axis_in_view`) are left out. The others are chosen by
+    :func:`agent.keyframes.select_keyframes` from their azimuths around x and their ``qualities`` (one per view, agent/keyframes.py; all 1 when not given). Raises ValueError when
     the estimate is still too uncertain for the volume to fit ``max_voxels`` (a box metres wide would
     take minutes and carve nothing useful). ``images`` (BGR, one per view or None) colour the model's mesh.
     """
     if qualities and len(qualities) != len(views):
         raise ValueError(f"qualities: {len(qualities)} given for {len(views)} views")
+    consistent = [i for i, (mask, camera, T) in enumerate(views) if axis_in_view(mask, camera, T, x[:2], params.max_height)]
+    if consistent:  # none: the estimate, not every pose, is off; carve them all
+        views = [views[i] for i in consistent]
+        images = [images[i] for i in consistent] if images else ()
+        qualities = [qualities[i] for i in consistent] if qualities else ()
     chosen = select_keyframes([view_azimuth(T, x[:2]) for _, _, T in views], list(qualities) or [1.0] * len(views),
                               params.keyframes, params.keyframe_gap)
     views = [views[i] for i in chosen]
