@@ -43,6 +43,7 @@ from typing import List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
+from agent.camera import CameraModel
 from nao_core.geometry import wrap_angle
 
 _MIN_CONTRAST = 8.0  # grey levels: below this a contour's sharpness is not measurable
@@ -130,10 +131,10 @@ def view_azimuth(T_WC: np.ndarray, centre_xy: Sequence[float]) -> float:
     return math.atan2(c[1] - float(centre_xy[1]), c[0] - float(centre_xy[0]))
 
 
-def axis_in_view(mask: np.ndarray, camera, T_WC: np.ndarray, centre_xy: Sequence[float], top: float,
+def axis_in_view(mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray, centre_xy: Sequence[float], top: float,
                  samples: int = 200) -> bool:
     """Does the image of the vertical axis through ``centre_xy`` (0 <= z <= ``top``) cross the
-    silhouette ``mask`` (module docstring)? ``camera``: the keyframe's agent.camera.CameraModel."""
+    silhouette ``mask`` of a keyframe seen with ``camera`` from ``T_WC`` (module docstring)?"""
     points = np.column_stack([np.full(samples, centre_xy[0]), np.full(samples, centre_xy[1]), np.linspace(0.0, top, samples)])
     uv, in_front = camera.project_world(points, T_WC)
     pixels = np.round(uv[in_front]).astype(int)

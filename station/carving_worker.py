@@ -43,7 +43,8 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
 
     Views whose pose the estimate contradicts (the axis through x misses their silhouette,
     :func:`agent.keyframes.axis_in_view`) are left out. The others are chosen by
-    :func:`agent.keyframes.select_keyframes` from their azimuths around x and their ``qualities`` (one per view, agent/keyframes.py; all 1 when not given). Raises ValueError when
+    :func:`agent.keyframes.select_keyframes` from their azimuths around x and their ``qualities``
+    (one per view, agent/keyframes.py; all 1 when not given). Raises ValueError when
     the estimate is still too uncertain for the volume to fit ``max_voxels`` (a box metres wide would
     take minutes and carve nothing useful). ``images`` (BGR, one per view or None) colour the model's mesh.
     """
