@@ -484,9 +484,9 @@ def carve_consistent(
     top = carve(views, bounds_min, bounds_max, pitch, dataclasses.replace(params, tolerance=params.tolerance_max),
                 footprint, images)
     pinholes = _pinhole_views(views)  # resampled once for every k tried
-    tolerances = range(min(params.tolerance, params.tolerance_max), params.tolerance_max + 1)
-    agreement = [float(np.mean(top.at_tolerance(k)._agreement(pinholes))) for k in tolerances]
-    return top.at_tolerance(tolerances[int(np.argmax(agreement))])
+    hulls = [top.at_tolerance(k) for k in range(min(params.tolerance, params.tolerance_max), params.tolerance_max + 1)]
+    agreement = [float(np.mean(hull._agreement(pinholes))) for hull in hulls]
+    return hulls[int(np.argmax(agreement))]  # its occupancy already computed
 
 
 def _pinhole_views(views: Sequence[View]) -> List[View]:

@@ -28,6 +28,14 @@ from station.runlog import load_recorded
 from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME
 
 
+def keyframe_camera(camera: CameraModel, keyframe: Dict) -> CameraModel:
+    """The camera a logged ``/agent/keyframe`` record was seen with: its self-calibrated K
+    (agent/self_calibration.py), or ``camera`` in logs without one."""
+    if keyframe.get("K") is None:
+        return camera
+    return dataclasses.replace(camera, K=np.asarray(keyframe["K"], dtype=float).reshape(3, 3))
+
+
 def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, tolerance: Optional[int] = None,
               progress: bool = True) -> VoxelCarver:
     setup = load_recorded(log_path)
@@ -59,9 +67,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
                 predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose
                 if silhouette is not None:
-                    seen_with = camera if keyframe.get("K") is None else dataclasses.replace(
-                        camera, K=np.asarray(keyframe["K"], dtype=float).reshape(3, 3))  # self-calibrated (agent/self_calibration.py)
-                    views.append((silhouette.mask, seen_with, np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
+                    views.append((silhouette.mask, keyframe_camera(camera, keyframe), np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
                     images.append(image)
                     qualities.append(float(keyframe.get("quality", 1.0)))  # logs before agent/keyframes.py: all alike
                 bar.update()

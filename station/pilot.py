@@ -403,10 +403,13 @@ class Pilot:
     def _calibration_standstill(self, t: float, start: bool = False) -> bool:
         """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
         would pass the sway for a calibration error): from the first ACTIVE tick (``start``) with an
-        object estimate (its even gaze dwells keep the object in view) until an estimate is applied, ``standstill`` s at most, and ``standstill_patience`` s at most without
-        a fix to store. No keyframe is taken meanwhile."""
+        object estimate (its even gaze dwells keep the object in view) until an estimate is applied,
+        ``standstill`` s at most, and ``standstill_patience`` s at most without a fix to store. No
+        keyframe is taken meanwhile."""
         p = self.config.self_calibration
-        if not p.enabled or self.calibration.applied is not None or (self._standstill is None and not (start and self.ekf.initialized)):
+        if not p.enabled or self.calibration.applied is not None:
+            return False
+        if self._standstill is None and not (start and self.ekf.initialized):
             return False
         if self._standstill is None:
             self._standstill = t

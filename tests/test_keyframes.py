@@ -87,6 +87,18 @@ def test_bad_input_is_refused_by_name():
         select_keyframes([math.nan], [1.0], 4, 0.1)
 
 
+def interior(can, half: float, count: int) -> np.ndarray:
+    """Grid points of |x|, |y| <= half, 0.01 <= z <= 0.11 (count x count x 6) inside ``can``."""
+    points = np.stack(np.meshgrid(*(np.linspace(-half, half, count),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
+    return points[can.contains(points)]
+
+
+def kept(carver, points: np.ndarray) -> float:
+    """Share of ``points`` whose voxel survives the carve."""
+    index = np.round((points - carver.origin) / carver.pitch).astype(int)
+    return float(carver.occupancy[tuple(index.T)].mean())
+
+
 def test_the_final_carve_keeps_the_precise_views_and_the_object():
     # A can seen from 12 directions, each first on dead reckoning (recorded pose 3 cm off sideways, pose
     # std 5 cm) and then after a fix (exact pose). First come (every N degrees) carves with the wrong
@@ -110,17 +122,12 @@ def test_the_final_carve_keeps_the_precise_views_and_the_object():
         views += [(mask, camera, wrong), (mask, camera, T)]
         qualities += [drifted, precise]
     x, P = np.array([0.0, 0.0, 0.05]), np.diag([1e-6, 1e-6, 1e-6])
-    truth_points = np.stack(np.meshgrid(*(np.linspace(-0.045, 0.045, 10),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
-    truth_points = truth_points[can.contains(truth_points)]
-
-    def kept(carver):  # share of points well inside the can that survive
-        index = np.round((truth_points - carver.origin) / carver.pitch).astype(int)
-        return float(carver.occupancy[tuple(index.T)].mean())
+    truth_points = interior(can, 0.045, 10)  # well inside the can
 
     chosen = carve_views(views, x, P, params, qualities=qualities)
     first_come = carve_views(views[0::2], x, P, params)  # what every-N-degrees kept: the first view of each direction
-    assert kept(chosen) == 1.0
-    assert kept(first_come) < 0.9, kept(first_come)
+    assert kept(chosen, truth_points) == 1.0
+    assert kept(first_come, truth_points) < 0.9, kept(first_come, truth_points)
 
 
 def test_the_final_carve_raises_its_tolerance_only_as_far_as_the_views_disagree():
@@ -142,19 +149,14 @@ def test_the_final_carve_raises_its_tolerance_only_as_far_as_the_views_disagree(
         wrong = T.copy()
         wrong[:3, 3] += (0.03 if i % 2 else -0.03) * T[:3, 0]  # sideways
         off.append((mask, camera, wrong))
-    inside = np.stack(np.meshgrid(*(np.linspace(-0.04, 0.04, 9),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
-    inside = inside[can.contains(inside)]
-
-    def kept(carver):
-        index = np.round((inside - carver.origin) / carver.pitch).astype(int)
-        return float(carver.occupancy[tuple(index.T)].mean())
+    inside = interior(can, 0.04, 9)
 
     tight = carve_consistent(exact, *box, None, params)
     assert tight.params.tolerance == params.tolerance
     fixed = carve(off, *box, None, params)
-    assert kept(fixed) < 0.9
+    assert kept(fixed, inside) < 0.9
     grown = carve_consistent(off, *box, None, params)
-    assert params.tolerance < grown.params.tolerance <= params.tolerance_max and kept(grown) > kept(fixed)
+    assert params.tolerance < grown.params.tolerance <= params.tolerance_max and kept(grown, inside) > kept(fixed, inside)
     top = carve(off, *box, None, dataclasses.replace(params, tolerance=params.tolerance_max))
     agreement = {k: np.mean(top.at_tolerance(k).silhouette_agreement(off)) for k in range(params.tolerance, params.tolerance_max + 1)}
     assert agreement[grown.params.tolerance] == max(agreement.values()) > agreement[params.tolerance]
@@ -220,12 +222,7 @@ def test_keyframes_whose_pose_the_estimate_contradicts_are_left_out_of_the_final
     x = np.array([0.0, 0.0, 0.05])
     consistent = [axis_in_view(m, c, T, x[:2], params.max_height) for m, c, T in views]
     assert consistent.count(False) == 6
-    inside = np.stack(np.meshgrid(*(np.linspace(-0.04, 0.04, 9),) * 2, np.linspace(0.01, 0.11, 6), indexing="ij"), -1).reshape(-1, 3)
-    inside = inside[can.contains(inside)]
+    inside = interior(can, 0.04, 9)
 
-    def kept(carver) -> float:
-        index = np.round((inside - carver.origin) / carver.pitch).astype(int)
-        return float(carver.occupancy[tuple(index.T)].mean())
-
-    assert kept(carve_consistent(views, *box, None, params)) < 0.5  # all views: the bad ones eat the can
-    assert kept(carve_views(views, x, np.diag([1e-6] * 3), params)) > 0.95
+    assert kept(carve_consistent(views, *box, None, params), inside) < 0.5  # all views: the bad ones eat the can
+    assert kept(carve_views(views, x, np.diag([1e-6] * 3), params), inside) > 0.95

@@ -56,6 +56,7 @@ from agent.camera import CameraModel
 from nao_core.robot_model import load_robot_model
 from nao_sim.randomize import RandomWorld, WorldSpec, random_world
 from nao_sim.standin import StandIn
+from station.carve import keyframe_camera
 from station.config import load_station_config
 from station.mcap_log import read_log
 from station.topics import DECISION, KEYFRAME, POSE
@@ -164,9 +165,7 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
         nearest = captured[np.argmin(np.abs(captured - stamp))]
         if abs(nearest - stamp) > 0.005:
             continue
-        seen_with = camera if record.get("K") is None else dataclasses.replace(
-            camera, K=np.asarray(record["K"], dtype=float).reshape(3, 3))  # the self-calibrated K the carve uses
-        logged, _ = seen_with.project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
+        logged, _ = keyframe_camera(camera, record).project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
         true, _ = true_camera.project_world(centre, renders[nearest])
         shifts.append(float(np.hypot(*(logged[0] - true[0]))))
     return (float(np.median(shifts)), float(np.max(shifts))) if shifts else None
