@@ -102,12 +102,12 @@ class CarvingParams:
     dilation: int = field(metadata=bounds(0, 50))
     floor_prior: bool
     mesh_smoothing: float = field(metadata=bounds(0.0, 5.0))  # sigma of the mesh's field, voxels (agent/mesh.py)
-    refine_px: int = field(metadata=bounds(0, 50))  # pose refinement search radius, px (0: off; refine_poses)
-    refine_pitch: float = field(metadata=bounds(1e-4, 1.0))  # voxel edge of the refinement's hulls, m
     keyframes: int = field(metadata=bounds(1, 1000))  # at most this many views in the final carve (agent/keyframes.py)
     keyframe_gap: float = field(metadata=bounds(0.0, math.pi))  # rad: no view closer than this to a chosen one
     keyframe_pose_std: float = field(metadata=bounds(1e-4, 1.0))  # m: pose std (at the object) that halves a view's quality
     keyframe_cut: float = field(metadata=bounds(0.0, 1.0))  # quality factor of a silhouette cut by an image border
+    keyframe_rotation_sigma: float = field(metadata=bounds(1e-5, 1.0))  # rad: orientation prior of a keyframe's refinement (agent/keyframe_pose.py)
+    keyframe_position_sigma: float = field(metadata=bounds(1e-5, 1.0))  # m: position prior of a keyframe's refinement
 
 
 def load_carving_params(overrides: Sequence[Union[str, Path]] = ()) -> CarvingParams:
@@ -493,54 +493,6 @@ def _pinhole_views(views: Sequence[View]) -> List[View]:
     """The views with each mask resampled to a bool silhouette on the ideal pinhole (``_pinhole_mask``)."""
     return [(_pinhole_mask(*_checked_view(mask, camera, T_WC)) > 0, camera, np.asarray(T_WC, dtype=float))
             for mask, camera, T_WC in views]
-
-
-def refine_poses(views: Sequence[View], bounds_min: Sequence[float], bounds_max: Sequence[float],
-                 params: CarvingParams, footprint: Optional[Tuple[float, float, float]] = None) -> List[View]:
-    """Keyframe poses refined by silhouette consistency (leave one out), before the final carve.
-
-    For view i, the hull H_i of all the other views (pitch ``refine_pitch``, the configured tolerance)
-    is projected (voxel centres, grown by half a voxel's image) into view i. Every integer image
-    shift |du|, |dv| <= ``refine_px`` of the silhouette is scored by its pixels outside that projection
-    (those would carve what the other views keep); the shifts of least score form a set (the hull is
-    larger than the object, so several fit) and its mean (du, dv) is taken: the hull projects (du, dv)
-    away from where the silhouette is. A rotation of the camera about its centre, T_WC <- T_WC R_x(-atan(dv / f_y))
-    R_y(atan(du / f_x)), moves every image point by about (-du, -dv), so the pose is corrected
-    rather than the mask. The mm-level translation errors of a
-    keyframe pose at 0.5-1 m look like such shifts (1 px at QVGA is about 2 mm at 0.6 m).
-    """
-    views = [(m, c, np.asarray(T, dtype=float)) for m, c, T in views]
-    if params.refine_px == 0 or len(views) < 3:
-        return views
-    coarse = dataclasses.replace(params, floor_prior=False, refine_px=0)
-    refined = []
-    for i, (mask, camera, T_WC) in enumerate(views):
-        others = carve(views[:i] + views[i + 1 :], bounds_min, bounds_max, params.refine_pitch, coarse, footprint)
-        silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC))
-        du, dv = _best_shift(others, silhouette, camera, T_WC, params.refine_px)
-        K = np.asarray(camera.K, dtype=float)
-        rotation = np.eye(4)
-        rotation[:3, :3] = cv2.Rodrigues(np.array([-math.atan(dv / K[1, 1]), 0.0, 0.0]))[0] @ cv2.Rodrigues(
-            np.array([0.0, math.atan(du / K[0, 0]), 0.0]))[0]
-        refined.append((mask, camera, T_WC @ rotation))
-    return refined
-
-
-def _best_shift(hull: "VoxelCarver", silhouette: np.ndarray, camera: CameraModel, T_WC: np.ndarray, radius: int) -> Tuple[int, int]:
-    """The centre (du, dv) of the shifts that leave the fewest silhouette pixels outside the hull's projection."""
-    voxels = np.argwhere(hull.occupancy)
-    if not len(voxels) or not silhouette.any():
-        return 0, 0
-    pad = radius + 1
-    height, width = silhouette.shape
-    projection = _project_centres(hull.origin + hull.pitch * voxels, hull.pitch, camera, T_WC, silhouette.shape, pad)
-    padded = np.zeros_like(projection)
-    padded[pad : pad + height, pad : pad + width] = silhouette > 0
-    shifts = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
-    outside = np.array([np.count_nonzero(np.roll(padded, (dv, du), axis=(0, 1)) & ~projection) for du, dv in shifts])
-    feasible = np.array(shifts)[outside == outside.min()]
-    du, dv = np.round(feasible.mean(axis=0)).astype(int)  # the centre of the shifts that fit best
-    return int(du), int(dv)
 
 
 def _project_centres(centres: np.ndarray, pitch: float, camera: CameraModel, T_WC: np.ndarray, shape: Tuple[int, int],

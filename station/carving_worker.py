@@ -27,7 +27,6 @@ from agent.carving import (
     VoxelCarver,
     carve_consistent,
     estimate_footprint,
-    refine_poses,
     volume_bounds,
 )
 from agent.ekf import position_std
@@ -60,7 +59,6 @@ def carve_views(views: List[View], x: np.ndarray, P: Optional[np.ndarray], param
     views = [views[i] for i in chosen]
     images = [images[i] for i in chosen] if images else ()
     lo, hi = volume_bounds(x[:2], float(x[2]), params, P, views)
-    views = refine_poses(views, lo, hi, params, estimate_footprint(lo, hi))
     return carve_consistent(views, lo, hi, pitch, params, estimate_footprint(lo, hi), images)
 
 

@@ -85,8 +85,9 @@ from agent.clearance import image_distance
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
 from agent.head_servo import ObjectHeight, head_target
+from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
-from agent.localization import RobotLocalizer, head_directions
+from agent.localization import PoseFix, RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
@@ -316,7 +317,7 @@ class Pilot:
                 self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image)
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
         if self.anchored:
             with guarded("coverage"):
                 self.coverage.add(np.asarray(cam))
@@ -376,7 +377,8 @@ class Pilot:
         return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
 
     def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
-                        predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None) -> None:
+                        predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None,
+                        fix: Optional[PoseFix] = None) -> None:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
@@ -385,6 +387,11 @@ class Pilot:
                                c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
         if not self._keyframes.offer(azimuth, quality):
             return
+        if fix is not None and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
+            loc = self.config.localization
+            refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, max(loc.pixel_sigma, fix.rms_px),
+                                         c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
+            T_WC = T_WC if refined is None else refined
         step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 from typing import Optional, Tuple
 
 import cv2
@@ -17,7 +16,6 @@ from skimage.measure import marching_cubes
 from agent.camera import CameraModel
 from agent.carving import (
     CarvingParams,
-    refine_poses,
     VoxelCarver,
     carve,
     load_carving_params,
@@ -232,28 +230,6 @@ def test_vertex_colours_come_from_the_best_facing_keyframe():
     assert checked > 0.1 * len(mesh.vertices)
     with pytest.raises(ValueError, match="image"):
         VoxelCarver(LO, HI, 0.02, EXACT).add_view(views[0][0], CAMERA, poses[0], np.zeros((10, 10, 3), np.uint8))
-
-
-def test_refinement_undoes_a_rotated_keyframe_pose():
-    # One of 12 views gets its camera rotated by 3 px worth of yaw and 2 px of pitch (its silhouette was
-    # rendered at the true pose): the leave-one-out hull of the others brings it back to within 1.5 px
-    # (integer shifts round by up to 0.7 px; the 8 mm hull's feasible shifts are not quite centred).
-    shape = SHAPES["box"]
-    views = views_of(shape)
-    mask, camera, T_true = views[4]
-    fx, fy = camera.K[0, 0], camera.K[1, 1]
-    error = np.eye(4)
-    error[:3, :3] = cv2.Rodrigues(np.array([math.atan(-2.0 / fy), math.atan(3.0 / fx), 0.0]))[0]
-    views[4] = (mask, camera, T_true @ error)
-    params = dataclasses.replace(EXACT, refine_px=4, refine_pitch=0.008)
-    refined = refine_poses(views, LO, HI, params)
-    centre = np.array([[*CENTRE, 1.0]]).T
-    pixel = lambda T: (camera.K @ (np.linalg.inv(T)[:3] @ centre)).ravel()  # noqa: E731
-    before, after, truth = (pixel(T) for T in (views[4][2], refined[4][2], T_true))
-    assert np.linalg.norm(before[:2] / before[2] - truth[:2] / truth[2]) > 3.0
-    assert np.linalg.norm(after[:2] / after[2] - truth[:2] / truth[2]) <= 1.5
-    # refine_px 0: poses unchanged
-    np.testing.assert_array_equal(refine_poses(views, LO, HI, EXACT)[4][2], views[4][2])
 
 
 def test_meshes_of_random_grids_are_watertight_where_lewiner_is_not():
