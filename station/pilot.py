@@ -24,7 +24,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
                    measured and agent.keyframes.KeyframePool keeps it: its viewing azimuth
                    a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle,
-                   or its quality (pose precision x silhouette) doubles every one's near it
+                   or its quality (pose precision x silhouette) doubles every one's near it; a
+                   keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
+                   against that fix's points (agent/keyframe_pose.py)
 
 Re-anchoring: before the first fix the filter runs in the odometry frame O and its measurements
 are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each kept measurement
