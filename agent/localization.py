@@ -22,12 +22,20 @@ Landmark points (image u_i <-> world X_i):
 
 Planar model. The robot stands on the floor: height, roll and pitch come from the kinematics
 (T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
-the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) T_BC with delta a small
-unknown, held by a prior of std ``roll_sigma`` while walking and ``roll_sigma_still`` when the
-odometry moved less than ``still_motion`` since the previous reading (standing: no sway; far markers all at one height
-do not tell roll from position, so a loose prior would cost precision for nothing). A point projects as
+the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) Ry(epsilon) T_BC with delta
+a small unknown roll, held by a prior of std ``roll_sigma`` while walking and ``roll_sigma_still``
+when the odometry moved less than ``still_motion`` since the previous reading (standing: no sway;
+far markers all at one height do not tell roll from position, so a loose prior would cost precision
+for nothing), and epsilon a small unknown pitch, held by ``pitch_sigma``. The pitch cannot be left
+to T_BC: 0.1 deg of it (a head pitch sensor's resolution, the sway's bob) shifts every point by a
+pixel, which a fit of (x, y, theta) alone turns into a range error (measured on rendered frames of
+the project's room: fixes 7 cm off; 0.3 deg: 20 cm off or none). All points shift together under a
+pitch, so the markers' rows observe it and the loose prior costs precision only where the markers
+are all at one range. A fit that needs |epsilon| > ``max_roll_sigmas`` ``pitch_sigma`` is no fix
+(the kinematics or the correspondences are wrong: points all on one ray fit any pose with a large
+pitch). A point projects as
 
-    X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
+    X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Ry(-epsilon) Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
 
 Linear seed (no PnP, no 6-DOF ambiguity). With a = cos theta, b = sin theta,
 p = -(a x + b y), q = b x - a y, X_B = (a X + b Y + p, -b X + a Y + q, Z) is linear in
@@ -37,15 +45,19 @@ points gives v (two points determine it exactly); then theta = atan2(b, a), and 
 the consistency check a minimal set is scored by. A rank-deficient system (one point, points on
 one ray) gives no fix.
 
-Refinement: Gauss-Newton on (x, y, theta, delta) on every inlier point, delta held to its prior
-by one extra residual (pixel_sigma / roll_sigma) delta:
+Refinement: Gauss-Newton on (x, y, theta, delta, epsilon) on every inlier point, delta and epsilon
+held to their priors by one extra residual each:
 
-    min sum_i || u_i - pi(X_C,i) ||^2 + (sigma_px delta / sigma_roll)^2,
+    min sum_i || u_i - pi(X_C,i) ||^2 + (sigma_px delta / sigma_roll)^2 + (sigma_px epsilon / sigma_pitch)^2,
     R_fix = s^2 [(J^T J)^-1]_{xyθ},  s^2 = max(sigma_px^2, sum_i ||r_i||^2 / (2N - 3)),
 
 with the analytic Jacobian dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta =
-(X_B.y, -X_B.x, 0), d(Rx(-delta) X_B)/d delta = (0, Z', -Y'). A singular J^T J, a point behind the
-camera or a non-finite residual ends the refinement with "no fix" and a reason.
+(X_B.y, -X_B.x, 0), d(Rx(-delta) X_B)/d delta = (0, Z', -Y') (then turned by Ry(-epsilon)),
+d(Ry(-epsilon) W)/d epsilon = (-W''.z, 0, W''.x) with W'' = Ry(-epsilon) W. The joint fit of
+several markers starts from the linear seed, from the planar part of the 6-DOF PnP of all points
+(``cv2.SOLVEPNP_SQPNP``, free of T_BC's tilt: with far markers a 0.3 deg pitch puts the linear seed
+metres off, into a wrong minimum) and from the prior, and keeps the least RMS. A singular J^T J, a
+point behind the camera or a non-finite residual ends the refinement with "no fix" and a reason.
 
 Robust gate (markers): the joint solution of all markers is kept when every marker's corners
 reproject within ``ransac_reprojection_px``; otherwise each marker alone is a hypothesis, markers
@@ -123,6 +135,7 @@ from nao_core.geometry import (
     invert,
     relative,
     rot_x,
+    rot_y,
     wrap_angle,
 )
 from nao_core.landmark_map import Landmark, LandmarkMap
@@ -140,6 +153,7 @@ class LocalizationParams:
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC (walking)
     roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
+    pitch_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the camera pitch missing from T_BC
     still_motion: float = field(metadata=bounds(0.0, 0.1))  # m and rad: odometry moving less than this per reading is standing (sensor jitter)
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
@@ -176,8 +190,9 @@ class PoseFix:
     rms_px: float  # reprojection RMS of the inliers
     landmark_ids: Tuple[object, ...]
     points: int  # inlier points used
-    T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll)
+    T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
+    pitch: float = 0.0  # rad, camera pitch the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
@@ -263,13 +278,12 @@ class PlanarModel:
         return cv2.undistortPoints(np.asarray(u, dtype=np.float64).reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
 
     def to_camera(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """X_C (N x 3) and Rx(-delta) X_B (N x 3) for parameters p = (x, y, theta[, delta])."""
+        """X_C (N x 3) and the tilted body point Ry(-epsilon) Rx(-delta) X_B (N x 3) for
+        p = (x, y, theta[, delta[, epsilon]])."""
         c, s = math.cos(p[2]), math.sin(p[2])
         d = X - np.array([p[0], p[1], 0.0])
-        X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
-        if len(p) > 3:
-            X_B = X_B @ rot_x(-p[3])[:3, :3].T
-        return X_B @ self.R_CB.T + self.t_CB, X_B
+        X_T = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]) @ _tilt(p).T
+        return X_T @ self.R_CB.T + self.t_CB, X_T
 
     def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
@@ -281,17 +295,24 @@ class PlanarModel:
         return uv, z
 
     def jacobian(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(uv N x 2, z N, J N x 2 x 4) at p = (x, y, theta, delta)."""
+        """(uv N x 2, z N, J N x 2 x len(p)) at p = (x, y, theta, delta[, epsilon])."""
         c, s = math.cos(p[2]), math.sin(p[2])
-        X_C, X_R = self.to_camera(p, X)
         R_roll = rot_x(-p[3])[:3, :3]
+        R_pitch = rot_y(-p[4] if len(p) > 4 else 0.0)[:3, :3]
+        tilt = R_pitch @ R_roll
         d = X - np.array([p[0], p[1], 0.0])
         X_B = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
-        dB = np.zeros((len(X), 3, 4))  # d(Rx(-delta) X_B) / dp
-        dB[:, :, 0] = R_roll @ np.array([-c, s, 0.0])
-        dB[:, :, 1] = R_roll @ np.array([-s, -c, 0.0])
-        dB[:, :, 2] = np.column_stack([X_B[:, 1], -X_B[:, 0], np.zeros(len(X))]) @ R_roll.T
-        dB[:, :, 3] = np.column_stack([np.zeros(len(X)), X_R[:, 2], -X_R[:, 1]])
+        X_R = X_B @ R_roll.T
+        X_T = X_R @ R_pitch.T
+        X_C = X_T @ self.R_CB.T + self.t_CB
+        zero = np.zeros(len(X))
+        dB = np.zeros((len(X), 3, len(p)))  # d(Ry(-epsilon) Rx(-delta) X_B) / dp
+        dB[:, :, 0] = tilt @ np.array([-c, s, 0.0])
+        dB[:, :, 1] = tilt @ np.array([-s, -c, 0.0])
+        dB[:, :, 2] = np.column_stack([X_B[:, 1], -X_B[:, 0], zero]) @ tilt.T
+        dB[:, :, 3] = np.column_stack([zero, X_R[:, 2], -X_R[:, 1]]) @ R_pitch.T
+        if len(p) > 4:
+            dB[:, :, 4] = np.column_stack([-X_T[:, 2], zero, X_T[:, 0]])
         dC = np.einsum("ij,njk->nik", self.R_CB, dB)
         z = X_C[:, 2]
         # d(f a / z) = f (da z - a dz) / z^2 for a = x, y
@@ -313,20 +334,19 @@ class PlanarModel:
         return _pose_of(v), float(math.hypot(v[0], v[1]))
 
     def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, pixel_sigma: float, roll_sigma: float,
-               iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-        """Gauss-Newton on (x, y, theta, delta): (p, rms, per-point error N, J^T J 4 x 4). Raises NoFix."""
-        p = np.array([*p0[:3], p0[3] if len(p0) > 3 else 0.0], dtype=float)
-        w = pixel_sigma / roll_sigma
+               pitch_sigma: float, iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """Gauss-Newton on (x, y, theta, delta, epsilon): (p, rms, per-point error N, J^T J 5 x 5). Raises NoFix."""
+        p = np.zeros(5)
+        p[: len(p0)] = p0[:5]
+        prior = np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
                 raise NoFix(f"{int(np.sum(z < MIN_DEPTH))} landmark point(s) behind the camera at the fit")
             r = (uv - target).ravel()
-            Jr = J.reshape(-1, 4)
-            H = Jr.T @ Jr
-            H[3, 3] += w * w
-            g = Jr.T @ r
-            g[3] += w * w * p[3]
+            Jr = J.reshape(-1, 5)
+            H = Jr.T @ Jr + np.diag(prior)
+            g = Jr.T @ r + prior * p
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
                 raise NoFix("non-finite residuals in the planar fit")
             if np.linalg.cond(H) > 1e12:
@@ -340,13 +360,33 @@ class PlanarModel:
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point(s) behind the camera at the fit")
         err = np.linalg.norm(uv - target, axis=1)
-        Jr = J.reshape(-1, 4)
-        H = Jr.T @ Jr
-        H[3, 3] += w * w
+        Jr = J.reshape(-1, 5)
+        H = Jr.T @ Jr + np.diag(prior)
         rms = float(np.sqrt(np.mean(err**2)))
         if not math.isfinite(rms):
             raise NoFix("non-finite reprojection error")
         return p, rms, err, H
+
+
+def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> List[np.ndarray]:
+    """(x, y, theta) of the robot under each PnP camera pose (T_WB = T_WC T_BC^-1), the finite ones."""
+    seeds = []
+    for rvec, tvec in zip(rvecs, tvecs):
+        T_CW = np.eye(4)
+        T_CW[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float))[0]
+        T_CW[:3, 3] = np.ravel(tvec)
+        T_WB = invert(T_CW) @ invert(model.T_BC)
+        if np.all(np.isfinite(T_WB)):
+            seeds.append(np.array([T_WB[0, 3], T_WB[1, 3], math.atan2(T_WB[1, 0], T_WB[0, 0])]))
+    return seeds
+
+
+def _tilt(p: Sequence[float]) -> np.ndarray:
+    """Ry(-epsilon) Rx(-delta): a body point as the camera's kinematics see it under the torso's
+    unmodelled roll delta and pitch epsilon (0 when p has no such entries)."""
+    delta = p[3] if len(p) > 3 else 0.0
+    epsilon = p[4] if len(p) > 4 else 0.0
+    return rot_y(-epsilon)[:3, :3] @ rot_x(-delta)[:3, :3]
 
 
 def _linear_rows(X: np.ndarray, n: np.ndarray, R_CB: np.ndarray, t_CB: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -698,6 +738,9 @@ class RobotLocalizer:
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too
             raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
+        if abs(p[4]) > self.params.max_roll_sigmas * self.params.pitch_sigma:
+            raise NoFix(f"the fit needs the camera pitched {math.degrees(p[4]):+.1f} deg off T_BC's (more than "
+                        f"{self.params.max_roll_sigmas:g} sigma): the kinematics or the correspondences are wrong")
         if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:  # the roll prior was wrong: widen it to |delta|
             H = H.copy()
             H[3, 3] += (self.params.pixel_sigma / p[3]) ** 2 - (self.params.pixel_sigma / self._roll_sigma) ** 2
@@ -711,16 +754,16 @@ class RobotLocalizer:
         if std > limit:
             raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
                         f"({len(points.landmark_ids)} landmarks, far or bunched)")
-        T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ model.T_BC)
+        T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), pitch=float(p[4]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        roll_sigma=self._roll_sigma)
 
     # -- markers -------------------------------------------------------------------------------
 
     def _refine(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
-        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self._roll_sigma)
+        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self._roll_sigma, self.params.pitch_sigma)
 
     def _fit_markers(self, model: PlanarModel, markers: _Points, prior: Optional[np.ndarray]):
         """(inlier points, p, rms, H): the joint fit of all markers, or the largest consensus (module docstring)."""
@@ -729,7 +772,7 @@ class RobotLocalizer:
             return self._single_marker(model, markers, prior)
         gate = self.params.ransac_reprojection_px
         try:
-            p, rms, err, H = self._refine(model, markers, model.linear_seed(markers.X, markers.u)[0])
+            p, rms, err, H = self._refine_best(model, markers, self._joint_seeds(model, markers, prior))
             if np.all(_group_max(err, markers.group) <= gate):
                 return markers, p, rms, H
         except NoFix:
@@ -759,6 +802,35 @@ class RobotLocalizer:
                 return self._single_marker(model, consensus, prior)
             p, rms, err, H = self._refine(model, consensus, p)
         return consensus, p, rms, H
+
+    def _joint_seeds(self, model: PlanarModel, points: _Points, prior: Optional[np.ndarray]) -> List[np.ndarray]:
+        """Starting poses of a joint fit: the linear solve, the planar part of the 6-DOF PnP of all
+        points (SQPnP: free of T_BC's pitch and roll errors, which throw the linear solve metres off
+        with far markers), and the prior."""
+        seeds = [] if prior is None else [prior[:3]]
+        try:
+            seeds.append(model.linear_seed(points.X, points.u)[0])
+        except NoFix:
+            pass
+        try:
+            ok, rvec, tvec = cv2.solvePnP(points.X, points.u, self.camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            return seeds
+        if ok:
+            seeds += _planar_seeds(model, [rvec], [tvec])
+        return seeds
+
+    def _refine_best(self, model: PlanarModel, points: _Points, seeds: List[np.ndarray]):
+        """The refinement of least reprojection RMS over ``seeds``; NoFix when none converges."""
+        fits, reasons = [], []
+        for seed in seeds:
+            try:
+                fits.append(self._refine(model, points, seed))
+            except NoFix as reason:
+                reasons.append(str(reason))
+        if not fits:
+            raise NoFix(reasons[-1] if reasons else "no starting pose for the joint fit")
+        return min(fits, key=lambda fit: fit[1])
 
     def _single_marker(self, model: PlanarModel, marker: _Points, prior: Optional[np.ndarray]):
         """Both planar solutions of one marker (linear seed and IPPE's two), told apart or no fix."""
@@ -798,20 +870,12 @@ class RobotLocalizer:
         return marker, chosen[0], chosen[1], chosen[2]
 
     def _ippe_seeds(self, model: PlanarModel, marker: _Points) -> List[np.ndarray]:
-        """Planar poses of IPPE's two solutions for one marker (T_WB = T_WC T_BC^-1)."""
+        """Planar poses of IPPE's two solutions for one marker."""
         try:
             n, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker.X, marker.u, self.camera.K, None, flags=cv2.SOLVEPNP_IPPE)
         except cv2.error:
             return []
-        seeds = []
-        for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
-            T_CW = np.eye(4)
-            T_CW[:3, :3] = cv2.Rodrigues(rvec)[0]
-            T_CW[:3, 3] = np.ravel(tvec)
-            T_WB = invert(T_CW) @ invert(model.T_BC)
-            if np.all(np.isfinite(T_WB)):
-                seeds.append(np.array([T_WB[0, 3], T_WB[1, 3], math.atan2(T_WB[1, 0], T_WB[0, 0])]))
-        return seeds
+        return _planar_seeds(model, rvecs[:n], tvecs[:n])
 
     # -- colour markers ------------------------------------------------------------------------
 
@@ -957,14 +1021,13 @@ class RobotLocalizer:
     def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
         """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
         model = PlanarModel(self.camera, T_BC)
-        p = np.array([*pose, 0.0])
+        p = np.array([*pose, 0.0, 0.0])
         X, _ = self._visible_points(model, p)
         if len(X) < self.params.min_points:
             return len(X), None
         _, _, J = model.jacobian(p, X)
-        Jr = J.reshape(-1, 4)
-        H = Jr.T @ Jr
-        H[3, 3] += (self.params.pixel_sigma / self.params.roll_sigma) ** 2
+        Jr = J.reshape(-1, 5)
+        H = Jr.T @ Jr + np.diag([0.0, 0.0, 0.0, *(self.params.pixel_sigma / np.array([self.params.roll_sigma, self.params.pitch_sigma])) ** 2])
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
@@ -988,8 +1051,10 @@ class RobotLocalizer:
             diameters = np.array([lm.diameter for lm in self.detector.color_landmarks])
             uv, z = model.project(p, L)
             with np.errstate(invalid="ignore", divide="ignore"):
-                area = math.pi / 4 * (self.camera.K[0, 0] * diameters / z) ** 2
-            inside = np.all((uv >= margin) & (uv <= size - 1 - margin), axis=1) & (z > MIN_DEPTH)
+                radius = self.camera.K[0, 0] * diameters / (2.0 * z)
+            area = math.pi * radius**2
+            rim = (margin + radius)[:, None]  # a disc cut by the border is dropped by the detector
+            inside = np.all((uv >= rim) & (uv <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
             chosen.append(L[inside & (area >= self.perception.landmark_min_area)])
         X = np.vstack(chosen) if chosen else np.empty((0, 3))
         return X, model.project(p, X)[0]
