@@ -5,9 +5,10 @@ For each layout of config/landmarks (the 4 x 4 m ones in a room of half size 2 m
 the can from 0.6-1.1 m at a random azimuth, the robot's heading 0.2 rad (1 sigma) off the object,
 the head aimed at the object (``RobotModel.look_at``), VGA, simulator noise. Counted: the frames
 with >= 2 landmarks wholly in the image (a marker's four corners facing the camera, a ball with its
-rim). The localizer gets T_BC rolled by +-0.3 deg (the torso roll the kinematics missed). *cold*:
-``measure`` without a prior (repeated colours by the hypothesis search); *prior*: with a prior
-3.6 cm / 1.1 deg off (tracking). "well-posed" is the share of counted frames whose predicted fix
+rim). The localizer gets T_BC rolled and pitched by +-0.3 deg each (the torso sway the kinematics
+missed). *cold*: ``measure`` without a prior (repeated colours by the hypothesis search); *prior*:
+with a prior 3.6 cm / 1.1 deg off (tracking); *cold, pitch held*: the baseline, cold with the pitch
+held to T_BC's (``pitch_sigma`` 1e-5 rad, the model before the pitch was fitted). "well-posed" is the share of counted frames whose predicted fix
 (``predicted_fix`` at the true pose) is within half the precision gate, and the fixes among them.
 Cold, the gate drops fixes less precise than ``max_position_std`` (2.5 cm); with a prior it keeps
 them up to ``max_position_std_with_prior`` (8 cm) for the Kalman fusion, which weighs them by their
@@ -26,13 +27,14 @@ from agent.camera import CameraModel
 from agent.localization import LocalizationParams, RobotLocalizer, landmarks_in_image
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
-from nao_core.geometry import rot_x, wrap_angle
+from nao_core.geometry import rot_x, rot_y, wrap_angle
 from nao_core.robot_model import load_robot_model
 from nao_sim.scenarios import Room, load_sim_config
 from nao_sim.world import SimWorld
 
 VIEWS = 80
-ROLL = math.radians(0.3)
+TILT = math.radians(0.3)  # rad, the roll and the pitch T_BC misses
+HELD = 1e-5  # rad, the baseline's pitch prior: held
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
 
@@ -46,9 +48,10 @@ def _layout(name: str, half_size: float) -> list:
     config = dataclasses.replace(load_sim_config(), landmarks=f"landmarks/{name}.yaml", room=Room(half_size, 2.0))
     world = SimWorld("can", robot, "vga", seed=1, config=config)
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
+    held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD), world.landmarks, camera, perception)
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
-    rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode in ("cold", "prior")}
+    rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode in ("cold", "prior", "cold, pitch held")}
     for _ in range(VIEWS):
         d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
         truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
@@ -58,13 +61,15 @@ def _layout(name: str, half_size: float) -> list:
             continue
         _, predicted = localizer.predicted_fix(truth, frame.T_BC)
         posed = predicted is not None and math.sqrt(np.linalg.eigvalsh(predicted[:2, :2])[-1]) <= params.max_position_std / 2
-        T_BC = rot_x(rng.choice([-1.0, 1.0]) * ROLL) @ frame.T_BC
-        for mode, prior in (("cold", None), ("prior", tuple(t + o for t, o in zip(truth, PRIOR_OFFSET)))):
+        roll, pitch = rng.choice([-1.0, 1.0], 2) * TILT
+        T_BC = rot_x(roll) @ rot_y(pitch) @ frame.T_BC
+        prior = tuple(t + o for t, o in zip(truth, PRIOR_OFFSET))
+        for mode, solver, start in (("cold", localizer, None), ("prior", localizer, prior), ("cold, pitch held", held, None)):
             row = rows[mode]
-            localizer.reset()
-            start = time.perf_counter()
-            fix = localizer.measure(frame.image, T_BC, prior)
-            row["times"].append((time.perf_counter() - start) * 1e3)
+            solver.reset()
+            begin = time.perf_counter()
+            fix = solver.measure(frame.image, T_BC, start)
+            row["times"].append((time.perf_counter() - begin) * 1e3)
             row["shown"] += 1
             row["posed"] += posed
             if fix is not None:
