@@ -54,9 +54,10 @@ held to their priors by one extra residual each:
 with the analytic Jacobian dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta =
 (X_B.y, -X_B.x, 0), d(Rx(-delta) X_B)/d delta = (0, Z', -Y') (then turned by Ry(-epsilon)),
 d(Ry(-epsilon) W)/d epsilon = (-W''.z, 0, W''.x) with W'' = Ry(-epsilon) W. The joint fit of
-several markers starts from the linear seed, from the planar part of the 6-DOF PnP of all points
-(``cv2.SOLVEPNP_SQPNP``, free of T_BC's tilt: with far markers a 0.3 deg pitch puts the linear seed
-metres off, into a wrong minimum) and from the prior, and keeps the least RMS. A singular J^T J, a
+several markers starts from the planar part of the 6-DOF PnP of all points (``cv2.SOLVEPNP_SQPNP``,
+free of T_BC's tilt: with far markers a 0.3 deg pitch puts the linear seed metres off, into a wrong
+minimum), then from the prior, then from the linear seed, and keeps the first fit every marker
+agrees with (below) at an RMS within ``max_reprojection_px``. A singular J^T J, a
 point behind the camera or a non-finite residual ends the refinement with "no fix" and a reason.
 
 Robust gate (markers): the joint solution of all markers is kept when every marker's corners
@@ -120,7 +121,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Iterable, List, Literal, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -161,7 +162,7 @@ class LocalizationParams:
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
-    max_roll_sigmas: float = field(metadata=bounds(0.5, 100.0))  # a fit whose torso roll exceeds this many prior std is no fix
+    max_roll_sigmas: float = field(metadata=bounds(0.5, 100.0))  # roll beyond this many prior std widens the covariance; pitch beyond it is no fix
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
@@ -771,12 +772,13 @@ class RobotLocalizer:
         if len(groups) == 1:
             return self._single_marker(model, markers, prior)
         gate = self.params.ransac_reprojection_px
-        try:
-            p, rms, err, H = self._refine_best(model, markers, self._joint_seeds(model, markers, prior))
-            if np.all(_group_max(err, markers.group) <= gate):
+        for seed in self._joint_seeds(model, markers, prior):  # the first that every marker agrees with
+            try:
+                p, rms, err, H = self._refine(model, markers, seed)
+            except NoFix:
+                continue
+            if np.all(_group_max(err, markers.group) <= gate) and rms <= self.params.max_reprojection_px:
                 return markers, p, rms, H
-        except NoFix:
-            pass
         best: Optional[np.ndarray] = None
         for g in groups:  # one-marker hypotheses, scored by the markers they predict
             one = markers.take(markers.group == g)
@@ -803,34 +805,22 @@ class RobotLocalizer:
             p, rms, err, H = self._refine(model, consensus, p)
         return consensus, p, rms, H
 
-    def _joint_seeds(self, model: PlanarModel, points: _Points, prior: Optional[np.ndarray]) -> List[np.ndarray]:
-        """Starting poses of a joint fit: the linear solve, the planar part of the 6-DOF PnP of all
-        points (SQPnP: free of T_BC's pitch and roll errors, which throw the linear solve metres off
-        with far markers), and the prior."""
-        seeds = [] if prior is None else [prior[:3]]
-        try:
-            seeds.append(model.linear_seed(points.X, points.u)[0])
-        except NoFix:
-            pass
+    def _joint_seeds(self, model: PlanarModel, points: _Points, prior: Optional[np.ndarray]) -> Iterator[np.ndarray]:
+        """Starting poses of a joint fit, in order: the planar part of the 6-DOF PnP of all points
+        (SQPnP: free of T_BC's pitch and roll errors, which throw the linear solve metres off with
+        far markers, into a wrong minimum), the prior, the linear solve."""
         try:
             ok, rvec, tvec = cv2.solvePnP(points.X, points.u, self.camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+            if ok:
+                yield from _planar_seeds(model, [rvec], [tvec])
         except cv2.error:
-            return seeds
-        if ok:
-            seeds += _planar_seeds(model, [rvec], [tvec])
-        return seeds
-
-    def _refine_best(self, model: PlanarModel, points: _Points, seeds: List[np.ndarray]):
-        """The refinement of least reprojection RMS over ``seeds``; NoFix when none converges."""
-        fits, reasons = [], []
-        for seed in seeds:
-            try:
-                fits.append(self._refine(model, points, seed))
-            except NoFix as reason:
-                reasons.append(str(reason))
-        if not fits:
-            raise NoFix(reasons[-1] if reasons else "no starting pose for the joint fit")
-        return min(fits, key=lambda fit: fit[1])
+            pass
+        if prior is not None:
+            yield prior[:3]
+        try:
+            yield model.linear_seed(points.X, points.u)[0]
+        except NoFix:
+            pass
 
     def _single_marker(self, model: PlanarModel, marker: _Points, prior: Optional[np.ndarray]):
         """Both planar solutions of one marker (linear seed and IPPE's two), told apart or no fix."""
