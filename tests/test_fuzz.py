@@ -305,6 +305,7 @@ def test_fuzz(target):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)  # 20000 examples: longer than the suite's 300 s per test on a slow machine
 @pytest.mark.parametrize("target", sorted(TARGETS))
 def test_fuzz_long(target):
     run(target, LONG_EXAMPLES, derandomize=False)
