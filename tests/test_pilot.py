@@ -223,7 +223,8 @@ def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypa
         shot = world.render()
         seen.append((shot.odom, world.true_pose()))
         pilot.handle(FrameReceived(now[0], frame(len(seen), jpeg(shot.image), shot.T_BC.ravel(), shot.odom, shot.stamp)))
-        assert len(seen) <= withheld[0] + 10, "no landmark fix after the withheld frames"
+        # turning at QVGA, the first cold fixes may miss the precision gate for a few frames (far, bunched markers)
+        assert len(seen) <= withheld[0] + 20, "no landmark fix after the withheld frames"
     assert len(seen) > 3 and pilot.ekf.initialized and pilot.ekf.stats.accepted >= 2  # kept measurements re-anchored
     T_WO = compose(pilot.pose, relative(seen[-1][0], (0.0, 0.0, 0.0)))
     centre = np.asarray(world.truth()["object"]["centre"][:2])
