@@ -1,12 +1,13 @@
 """Keyframe camera pose: the full 6-DOF camera pose refined against the frame's own landmark points.
 
-The localizer fits the robot's planar pose (x, y, theta) and a torso roll, takes the rest of the
-camera pose from the kinematics (T_BC), and fuses the fix with odometry (agent/localization.py,
-docs/landmarks.md). The carve needs only the camera pose, and the kinematics' pitch and yaw errors
-(torso sway and joint lag left after capture-time interpolation: a few tenths of a degree, 3 px at
-587 px focal length for 0.3 deg) move every silhouette; the planar fit absorbs them into the robot's
-position, so the fused camera pose is off by 5-15 mm at a walking keyframe, and the carve removes
-the true object's rim where the silhouettes are misplaced (docs/carving.md, "Keyframe poses").
+The localizer fits the robot's planar pose (x, y, theta) with the torso roll and camera pitch T_BC
+missed, and fuses the fix with odometry (agent/localization.py, docs/landmarks.md); the pilot's
+camera pose is then T_WB(fused pose) T_BC, the kinematics' orientation again. The carve needs only
+the camera pose, and the kinematics' errors (torso sway and joint lag left after capture-time
+interpolation: a few tenths of a degree, 3 px at 587 px focal length for 0.3 deg) move every
+silhouette: measured on a walking flat box mission, the fused camera pose was off by 5-15 mm at its
+keyframes, and the carve removed the true object's rim where the silhouettes were misplaced
+(docs/carving.md, "Keyframe poses").
 
 A keyframe whose frame gave a landmark fix gets the maximum a posteriori camera pose given that
 fix's inlier points (world X_i, pinhole pixels u_i) and the fused pose (R_0, C_0) as prior:
