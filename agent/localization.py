@@ -193,7 +193,6 @@ class PoseFix:
     points: int  # inlier points used
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
-    pitch: float = 0.0  # rad, camera pitch the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
@@ -278,17 +277,16 @@ class PlanarModel:
         K = self.camera.K
         return cv2.undistortPoints(np.asarray(u, dtype=np.float64).reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
 
-    def to_camera(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """X_C (N x 3) and the tilted body point Ry(-epsilon) Rx(-delta) X_B (N x 3) for
-        p = (x, y, theta[, delta[, epsilon]])."""
+    def to_camera(self, p: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """X_C (N x 3) for p = (x, y, theta[, delta[, epsilon]])."""
         c, s = math.cos(p[2]), math.sin(p[2])
         d = X - np.array([p[0], p[1], 0.0])
         X_T = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]) @ _tilt(p).T
-        return X_T @ self.R_CB.T + self.t_CB, X_T
+        return X_T @ self.R_CB.T + self.t_CB
 
     def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
-        X_C, _ = self.to_camera(p, X)
+        X_C = self.to_camera(p, X)
         z = X_C[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = self.f * X_C[:, :2] / z[:, None] + self.c
@@ -339,7 +337,7 @@ class PlanarModel:
         """Gauss-Newton on (x, y, theta, delta, epsilon): (p, rms, per-point error N, J^T J 5 x 5). Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
-        prior = np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
+        prior = _tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
@@ -380,6 +378,11 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
         if np.all(np.isfinite(T_WB)):
             seeds.append(np.array([T_WB[0, 3], T_WB[1, 3], math.atan2(T_WB[1, 0], T_WB[0, 0])]))
     return seeds
+
+
+def _tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
+    """Diagonal of J^T J the roll and pitch priors add for (x, y, theta, delta, epsilon), in pixel units."""
+    return np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
 
 
 def _tilt(p: Sequence[float]) -> np.ndarray:
@@ -758,7 +761,7 @@ class RobotLocalizer:
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), pitch=float(p[4]), inliers=(points.X, points.u), T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        roll_sigma=self._roll_sigma)
 
     # -- markers -------------------------------------------------------------------------------
@@ -983,7 +986,7 @@ class RobotLocalizer:
         return np.array([p for p, Xh in zip(poses, X[keep]) if self._plausible(model, p, Xh)]).reshape(-1, 3)
 
     def _plausible(self, model: PlanarModel, p: np.ndarray, X: np.ndarray) -> bool:
-        X_C, _ = model.to_camera(p, X)
+        X_C = model.to_camera(p, X)
         return bool(np.all(X_C[:, 2] > MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
 
     def _consensus(self, model: PlanarModel, poses: np.ndarray, blobs_uv: np.ndarray, same: np.ndarray,
@@ -1017,7 +1020,7 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + np.diag([0.0, 0.0, 0.0, *(self.params.pixel_sigma / np.array([self.params.roll_sigma, self.params.pitch_sigma])) ** 2])
+        H = Jr.T @ Jr + np.diag(_tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]

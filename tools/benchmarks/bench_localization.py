@@ -8,8 +8,9 @@ with >= 2 landmarks wholly in the image (a marker's four corners facing the came
 rim). The localizer gets T_BC rolled and pitched by +-0.3 deg each (the torso sway the kinematics
 missed). *cold*: ``measure`` without a prior (repeated colours by the hypothesis search); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking); *cold, pitch held*: the baseline, cold with the pitch
-held to T_BC's (``pitch_sigma`` 1e-5 rad, the model before the pitch was fitted). "well-posed" is the share of counted frames whose predicted fix
-(``predicted_fix`` at the true pose) is within half the precision gate, and the fixes among them.
+held to T_BC's (``pitch_sigma`` 1e-5 rad, the model before the pitch was fitted). "well-posed" is
+the share of counted frames whose predicted fix (``predicted_fix`` at the true pose) is within half
+the precision gate, and the fixes among them.
 Cold, the gate drops fixes less precise than ``max_position_std`` (2.5 cm); with a prior it keeps
 them up to ``max_position_std_with_prior`` (8 cm) for the Kalman fusion, which weighs them by their
 covariance, so a few are off by more than 5 cm there.
