@@ -13,7 +13,12 @@ Apparent width: a cylinder of radius r seen under the angle delta has its centre
 r / sin(delta / 2), so its surface at d_width = r / sin(delta / 2) - r (r from the estimate, or
 the prior before one exists).
 
-The distance is min(d_floor, d_width) over those available; None when neither is.
+The distance is d_floor when the silhouette's base is in view: it does not depend on the object's
+shape, while d_width assumes the estimate's cylinder, and an object that is not one looks wider
+from some sides than that radius says, which d_width reads as near (measured: a figure 0.84 m
+away read as 0.17 m from the side, and the guard held the robot turning on the spot to the time
+limit, docs/benchmarks.md "Mission matrix"). With the base cut, min(d_floor, d_width) over those
+available; None when neither is.
 """
 
 from __future__ import annotations
@@ -52,6 +57,9 @@ def width_distance(delta: Optional[float], radius: float) -> Optional[float]:
 
 def image_distance(silhouette: Silhouette, delta: Optional[float], radius: float, camera: CameraModel,
                    T_WC: np.ndarray) -> Optional[float]:
-    """The nearer of the two distances the image gives (module docstring), or None."""
-    found = [d for d in (floor_distance(silhouette, camera, T_WC), width_distance(delta, radius)) if d is not None]
+    """The floor distance with the base in view, else the nearer of the two (module docstring), or None."""
+    floor = floor_distance(silhouette, camera, T_WC)
+    if floor is not None and not silhouette.touches_bottom:
+        return floor
+    found = [d for d in (floor, width_distance(delta, radius)) if d is not None]
     return min(found) if found else None
