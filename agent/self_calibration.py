@@ -26,7 +26,10 @@ principal point shift across the image is nearly a turn of the robot (d_u is hel
 prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
 
-Only fixes made standing are stored (their roll prior at most ``max_roll_sigma``): while walking
+A fix is stored when it has ``min_points`` points of ``min_landmarks`` landmarks or more: four
+balls, or two markers (one marker's range comes from its size, which a focal error scales alike,
+so it says nothing about the focal length). Only fixes made standing are stored (their roll prior
+at most ``max_roll_sigma``): while walking
 the torso sways, rolls and bobs by more than the kinematics report, and a bundle adjustment over
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
 mission). A mission stands while it searches and localizes; when it finds the object at once, it stands at
@@ -48,6 +51,7 @@ import numpy as np
 from agent.camera import CameraModel
 from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
 from nao_core.config import bounds
+from nao_core.landmark_map import LandmarkMap
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,7 @@ class SelfCalibrationParams:
     principal_sigma: float = field(metadata=bounds(0.01, 50.0))  # prior std of each principal point error, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px (the prior's weight)
     min_points: int = field(metadata=bounds(4, 1000))  # a fix with fewer inlier points is not stored
+    min_landmarks: int = field(metadata=bounds(2, 1000))  # ... nor one of fewer landmarks (one marker's size is its range)
     max_roll_sigma: float = field(metadata=bounds(1e-6, 0.2))  # rad: a fix fitted with a looser roll prior (walking) is not stored
     min_interval: float = field(metadata=bounds(0.0, 60.0))  # s between stored fixes (consecutive frames say the same)
     max_frames: int = field(metadata=bounds(4, 1000))  # stored fixes (the oldest goes)
@@ -122,11 +127,18 @@ class SelfCalibration:
         """The configured camera, corrected by the applied estimate."""
         return self.configured if self.applied is None else corrected(self.configured, self.applied.c)
 
+    def can_store_fixes_from(self, landmark_map: LandmarkMap) -> bool:
+        """Could a fix from this map be stored: ``min_landmarks`` landmarks and ``min_points`` points (four per marker)?"""
+        markers, balls = len(landmark_map.of_kind("aruco")), len(landmark_map.of_kind("color"))
+        return (self.params.enabled and markers + balls >= self.params.min_landmarks
+                and 4 * markers + balls >= self.params.min_points)
+
     def add(self, fix: PoseFix, stamp: float) -> bool:
         """Store ``fix``; True when a new estimate was applied. Its pixels have the lens distortion removed
         (by whichever K the localizer had: the distortion hardly depends on a K this close)."""
         p = self.params
-        if (not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points or fix.roll_sigma > p.max_roll_sigma
+        if (not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points
+                or len(fix.landmark_ids) < p.min_landmarks or fix.roll_sigma > p.max_roll_sigma
                 or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers

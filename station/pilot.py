@@ -34,7 +34,7 @@ is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, i
 them in order: the estimate of the odometry frame becomes the same estimate in W.
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
-standstill when the map has two ArUco markers or more, from the first tick with an object estimate
+standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick with an object estimate
 (a side-cut sighting alone gives none, and the scan would look away from it): a zero walk and the LOCALIZE gaze until an
 estimate is applied, ``self_calibration.standstill`` s at most and ``standstill_patience`` s
 without a fix to store (no keyframes meanwhile). Then in ACTIVE the walk command is the
@@ -174,7 +174,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
-        self._standstill: Optional[float] = None if len(config.landmarks.of_kind("aruco")) >= 2 else -math.inf  # its start
+        self._standstill: Optional[float] = None if self.calibration.can_store_fixes_from(config.landmarks) else -math.inf  # its start
         self._t_stored = -math.inf  # when the self-calibration last stored a fix
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False

@@ -17,7 +17,7 @@ from agent.localization import LocalizationParams, RobotLocalizer
 from agent.self_calibration import SelfCalibration, SelfCalibrationParams, corrected
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import Pose, camera_in_world, rot_x
-from nao_core.landmark_map import load_landmark_map
+from nao_core.landmark_map import LandmarkMap, load_landmark_map
 from nao_core.robot_model import load_robot_model
 
 ROBOT = load_robot_model()
@@ -29,25 +29,33 @@ PIXEL_NOISE = 0.2  # px per axis, about the corner refinement's
 ROLL = LOCALIZATION.roll_sigma_still  # rad, the torso roll T_BC misses, standing
 
 
-def observe(rng: np.random.Generator, true_camera: CameraModel) -> Optional[Tuple[Pose, np.ndarray, np.ndarray, np.ndarray]]:
-    """A pose 0.6-1.1 m from the room's centre with the head somewhere in its range, and the corners
-    of the markers wholly in view as ``true_camera`` sees them: (pose, T_BC, world N x 3, pixels N x 2)."""
+def observe(rng: np.random.Generator, true_camera: CameraModel, landmarks: LandmarkMap = MAP):
+    """A pose 0.6-1.1 m from the room's centre with the head somewhere in its range, and the points
+    of the landmarks wholly in view as ``true_camera`` sees them (a marker's four corners, a ball's
+    centre): (pose, T_BC, world N x 3, pixels N x 2, landmark of each point), or None when fewer than
+    two landmarks are in view."""
     d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
     pose = (d * math.cos(az), d * math.sin(az), rng.uniform(-math.pi, math.pi))
     T_BC = ROBOT.camera_in_robot(rng.uniform(-1.5, 1.5), rng.uniform(-0.1, 0.3))
     T_WC = camera_in_world(pose, rot_x(rng.normal(0.0, ROLL)) @ T_BC)
-    world, pixels = [], []
-    for marker in MAP.of_kind("aruco"):
-        corners = marker.aruco_corners()
-        uv, front = true_camera.project_world(corners, T_WC)
-        facing = np.dot(marker.normal, T_WC[:3, 3] - corners.mean(axis=0)) > 0
-        inside = np.all((uv >= 3) & (uv <= np.array([CAMERA.width, CAMERA.height]) - 3))
+    world, pixels, groups = [], [], []
+    for k, landmark in enumerate(landmarks.landmarks):
+        points = landmark.aruco_corners() if landmark.kind == "aruco" else np.array([landmark.position], dtype=float)
+        uv, front = true_camera.project_world(points, T_WC)
+        if landmark.kind == "aruco":
+            facing, margin = np.dot(landmark.normal, T_WC[:3, 3] - points.mean(axis=0)) > 0, 3.0
+        else:  # a ball: its whole disc in the image
+            facing = True
+            margin = 3.0 + 0.5 * landmark.diameter * true_camera.K[0, 0] / max(1e-3, np.linalg.norm(points[0] - T_WC[:3, 3]))
+        inside = np.all((uv >= margin) & (uv <= np.array([CAMERA.width, CAMERA.height]) - margin))
         if front.all() and facing and inside:
-            world.append(corners)
+            world.append(points)
             pixels.append(uv)
+            groups += [k] * len(points)
     if len(world) < 2:
         return None
-    return pose, T_BC, np.vstack(world), np.vstack(pixels) + rng.normal(0.0, PIXEL_NOISE, (4 * len(world), 2))
+    pixels = np.vstack(pixels)
+    return pose, T_BC, np.vstack(world), pixels + rng.normal(0.0, PIXEL_NOISE, pixels.shape), np.array(groups)
 
 
 def first_view(seed: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,25 +63,25 @@ def first_view(seed: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     while (seen := observe(rng, CAMERA)) is None:
         pass
-    return seen[1:]
+    return seen[1:4]
 
 
-def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARAMS, seed: int = 0):
+def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARAMS, seed: int = 0, landmarks: LandmarkMap = MAP):
     """Fixes as a mission makes them (the localizer on the calibration's current camera), fed to a
     SelfCalibration: (it, [(position error m, applied) per fix])."""
     rng = np.random.default_rng(seed)
     true_camera = corrected(CAMERA, error)
     calibration = SelfCalibration(params, CAMERA)
-    localizer = RobotLocalizer(LOCALIZATION, MAP, CAMERA)
+    localizer = RobotLocalizer(LOCALIZATION, landmarks, CAMERA)
     errors: List[Tuple[float, bool]] = []
     t = 0.0
     while len(errors) < frames:
-        seen = observe(rng, true_camera)
+        seen = observe(rng, true_camera, landmarks)
         if seen is None:
             continue
-        pose, T_BC, world, pixels = seen
+        pose, T_BC, world, pixels, groups = seen
         localizer.camera = calibration.camera
-        fix = localizer.fit(world, pixels, T_BC, roll_sigma=ROLL)
+        fix = localizer.fit(world, pixels, T_BC, groups=groups, roll_sigma=ROLL)
         if fix is None:
             continue
         errors.append((math.hypot(fix.pose[0] - pose[0], fix.pose[1] - pose[1]), calibration.applied is not None))
@@ -82,9 +90,13 @@ def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARA
     return calibration, errors
 
 
-def test_a_calibration_off_by_half_a_percent_and_a_pixel_is_found_and_the_fixes_recover():
+@pytest.mark.parametrize("layout, gain", [("walls", 3.0), ("colours", 1.5)])
+def test_a_calibration_off_by_half_a_percent_and_a_pixel_is_found_and_the_fixes_recover(layout, gain):
+    """ArUco markers on the walls, or balls of repeated colours (one point each: fixes of four balls
+    or more are stored). Corrected, the fixes lose the common bias: ``gain`` times better (the three
+    to six balls of a colour fix leave it 7 mm of noise at 2 m, the markers' corners 2 mm)."""
     error = np.array([0.005, -0.005, 1.0, -1.0])  # the matrix's randomized calibration error (config/sim.yaml)
-    calibration, errors = mission(error, 120)
+    calibration, errors = mission(error, 120, landmarks=load_landmark_map(CONFIG_DIR / "landmarks" / f"{layout}.yaml"))
     applied = calibration.applied
     assert applied is not None
     std = np.sqrt(np.diag(applied.covariance))
@@ -95,8 +107,8 @@ def test_a_calibration_off_by_half_a_percent_and_a_pixel_is_found_and_the_fixes_
     before = [e for e, calibrated in errors if not calibrated]
     after = [e for e, calibrated in errors if calibrated]
     assert len(before) >= PARAMS.min_frames
-    # the error was common to every fix (a bias); corrected, the fixes are within noise: 3 x better
-    assert np.median(after) < np.median(before) / 3.0, (np.median(before), np.median(after))
+    # the error was common to every fix (a bias); corrected, the fixes are within noise
+    assert np.median(after) < np.median(before) / gain, (np.median(before), np.median(after))
 
 
 def test_an_exact_calibration_stays_exact():
@@ -122,15 +134,28 @@ def test_disabled_it_never_changes_the_camera():
     assert calibration.applied is None and calibration.camera is CAMERA
 
 
-@pytest.mark.parametrize("points", [0, 4])
-def test_fixes_with_too_few_points_are_not_stored(points):
+@pytest.mark.parametrize("points, landmarks", [(0, 0), (3, 3), (4, 1), (8, 2)])
+def test_fixes_with_too_few_points_or_landmarks_are_not_stored(points, landmarks):
+    """Three balls (3 points), one marker (4 corners: its size is its range, which a focal error
+    scales alike): not stored; two markers are."""
     calibration = SelfCalibration(PARAMS, CAMERA)
     localizer = RobotLocalizer(LOCALIZATION, MAP, CAMERA)
     T_BC, world, pixels = first_view(3)
     fix = localizer.fit(world, pixels, T_BC, roll_sigma=ROLL)
     assert fix is not None
-    few = dataclasses.replace(fix, inliers=(world[:points], pixels[:points]))
-    assert not calibration.add(few, 1.0) and not calibration.fixes
+    view = dataclasses.replace(fix, inliers=(world[:points], pixels[:points]), landmark_ids=tuple(range(landmarks)))
+    calibration.add(view, 1.0)
+    stored = points >= PARAMS.min_points and landmarks >= PARAMS.min_landmarks
+    assert len(calibration.fixes) == int(stored)
+
+
+def test_the_standstill_is_made_only_for_maps_that_can_give_fixes_to_store():
+    calibration = SelfCalibration(PARAMS, CAMERA)
+    balls = [lm for lm in load_landmark_map(CONFIG_DIR / "landmarks" / "colours.yaml").landmarks]
+    assert calibration.can_store_fixes_from(MAP) and calibration.can_store_fixes_from(LandmarkMap(tuple(balls)))
+    assert not calibration.can_store_fixes_from(LandmarkMap(tuple(balls[: PARAMS.min_points - 1])))
+    assert not calibration.can_store_fixes_from(LandmarkMap(MAP.of_kind("aruco")[:1]))
+    assert not SelfCalibration(dataclasses.replace(PARAMS, enabled=False), CAMERA).can_store_fixes_from(MAP)
 
 
 def test_walking_fixes_are_not_stored():
