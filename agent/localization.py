@@ -1015,7 +1015,7 @@ class RobotLocalizer:
         """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
         model = PlanarModel(self.camera, T_BC)
         p = np.array([*pose, 0.0, 0.0])
-        X, _ = self._visible_points(model, p)
+        X, _, _ = self._visible_points(model, p)
         if len(X) < self.params.min_points:
             return len(X), None
         _, _, J = model.jacobian(p, X)
@@ -1025,7 +1025,13 @@ class RobotLocalizer:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
 
-    def _visible_points(self, model: PlanarModel, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
+        """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
+        X, _, landmarks = self._visible_points(PlanarModel(self.camera, T_BC), np.array([*pose, 0.0, 0.0]))
+        return len(X), landmarks
+
+    def _visible_points(self, model: PlanarModel, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray, int]:
+        """(world points, their pixels, landmarks) predicted in view from the planar pose ``p``."""
         margin = self.params.view_margin_px
         size = np.array([self.camera.width, self.camera.height])
         chosen = []
@@ -1050,7 +1056,8 @@ class RobotLocalizer:
             inside = np.all((uv >= rim) & (uv <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
             chosen.append(L[inside & (area >= self.perception.landmark_min_area)])
         X = np.vstack(chosen) if chosen else np.empty((0, 3))
-        return X, model.project(p, X)[0]
+        markers = int(np.sum(ok)) if len(corners) else 0
+        return X, model.project(p, X)[0], markers + (len(X) - 4 * markers)
 
     def best_landmark_view(self, pose: Pose, camera_in_robot: Callable[[float, float], np.ndarray],
                            directions: Iterable[Tuple[float, float]]) -> Optional[LandmarkView]:

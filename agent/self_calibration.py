@@ -34,8 +34,10 @@ the torso sways, rolls and bobs by more than the kinematics report, and a bundle
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
 mission). A mission stands while it searches and localizes; when it finds the object at once, it stands at
 the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and
-the landmark scan (station/pilot.py) until an estimate is applied, or sooner when no fix to store
-came for ``standstill_patience`` s (a sparse layout rarely shows two markers at once).
+the ``standstill_views`` head directions predicted from its pose to show a fix to store, most points
+first and ``standstill_view_spacing`` apart in yaw (station/pilot.py), until an estimate is applied,
+or sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
+predicted to show one (a sparse layout rarely shows two markers at once).
 
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
 on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
@@ -74,6 +76,8 @@ class SelfCalibrationParams:
     iterations: int = field(metadata=bounds(1, 100))
     standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
     standstill_patience: float = field(metadata=bounds(0.0, 60.0))  # s: ... and no longer than this without a fix to store
+    standstill_views: int = field(metadata=bounds(1, 100))  # head directions the standstill looks through (predicted to give fixes to store)
+    standstill_view_spacing: float = field(metadata=bounds(0.0, 3.0))  # rad of head yaw between two of them at least
 
 
 @dataclass(frozen=True)

@@ -35,8 +35,9 @@ them in order: the estimate of the odometry frame becomes the same estimate in W
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick with an object estimate
-(a side-cut sighting alone gives none, and the scan would look away from it): a zero walk and the LOCALIZE gaze until an
-estimate is applied, ``self_calibration.standstill`` s at most and ``standstill_patience`` s
+(a side-cut sighting alone gives none, and the scan would look away from it): a zero walk, the head
+alternating between the object and the directions predicted to show a fix to store, until an
+estimate is applied (no standstill when no direction is predicted to), ``self_calibration.standstill`` s at most and ``standstill_patience`` s
 without a fix to store (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
@@ -176,6 +177,7 @@ class Pilot:
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
         self._standstill: Optional[float] = None if self.calibration.can_store_fixes_from(config.landmarks) else -math.inf  # its start
         self._t_stored = -math.inf  # when the self-calibration last stored a fix
+        self._calibration_views: List[Tuple[float, float]] = []  # head directions the standstill looks through
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -239,7 +241,7 @@ class Pilot:
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=True):
             fixes = len(self.calibration.fixes)
-            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self._localize_gaze(t), reason=(
+            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self._calibration_gaze(t), reason=(
                 f"self-calibration: standing for landmark views ({fixes} of {self.config.self_calibration.min_frames} fixes)"))
         elif decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
@@ -409,6 +411,32 @@ class Pilot:
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 
+    def _calibration_gaze(self, t: float) -> Tuple[float, float]:
+        """Self-calibration standstill: even dwells on the object, odd ones through the calibration views."""
+        slot = int(t // self.config.mission.gaze_dwell)
+        if slot % 2 == 0 or not self._calibration_views:
+            return self._localize_gaze(t)
+        return self._calibration_views[(slot // 2) % len(self._calibration_views)]
+
+    def _views_to_calibrate(self) -> List[Tuple[float, float]]:
+        """Head directions from the current pose predicted to show a fix the self-calibration stores
+        (``min_points`` points of ``min_landmarks`` landmarks), most points first, at most
+        ``standstill_views`` of them at least ``standstill_view_spacing`` apart in yaw (distinct
+        geometry: one view's fixes repeat each other)."""
+        p = self.config.self_calibration
+        if self.pose is None or not self.anchored:
+            return []
+        scored = []
+        for yaw, pitch in self._directions:
+            points, landmarks = self.localizer.visible_landmarks(self.pose, self.robot.camera_in_robot(yaw, pitch))
+            if points >= p.min_points and landmarks >= p.min_landmarks:
+                scored.append((points, yaw, pitch))
+        views: List[Tuple[float, float]] = []
+        for _, yaw, pitch in sorted(scored, key=lambda v: -v[0]):
+            if all(abs(yaw - other) >= p.standstill_view_spacing for other, _ in views):
+                views.append((yaw, pitch))
+        return views[:p.standstill_views]
+
     def _calibration_standstill(self, t: float, start: bool = False) -> bool:
         """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
         would pass the sway for a calibration error): from the first ACTIVE tick (``start``) with an
@@ -421,6 +449,10 @@ class Pilot:
         if self._standstill is None and not (start and self.ekf.initialized):
             return False
         if self._standstill is None:
+            self._calibration_views = self._views_to_calibrate()
+            if not self._calibration_views:  # no view from here shows a fix to store: do not stand for one
+                self._standstill = -math.inf
+                return False
             self._standstill = t
         return t - self._standstill < p.standstill and t - max(self._standstill, self._t_stored) < p.standstill_patience
 

@@ -258,9 +258,9 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
 
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
     """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
-    sway for a calibration error), the head alternating between the object and the landmark scan;
-    an applied estimate, the standstill's end, or no fix to store for its patience, lets the
-    planner's command through."""
+    sway for a calibration error), the head alternating between the object and the directions
+    predicted to show a fix to store; an applied estimate, the standstill's end, or no fix to store
+    for its patience, lets the planner's command through. Where no direction shows one, no standstill."""
     assert len(CONFIG.landmarks.of_kind("aruco")) >= 2
     p = CONFIG.self_calibration
     pilot = Pilot(CONFIG, INFO)
@@ -268,7 +268,7 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     pilot.mission.tick(0.0)
     pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
     assert pilot.mission.phase is Phase.ACTIVE
-    pilot.pose = (0.0, 0.0, 0.0)
+    pilot.pose, pilot.anchored = (0.0, 0.0, 0.0), True
     pilot.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     pilot.command = (0.08, 0.0, 0.2)  # what the planner wants
     dwell = CONFIG.mission.gaze_dwell
@@ -278,7 +278,12 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
         pilot.mission.on_frame(0.2 + k * dwell, object_seen=True, landmark_fix=True, localized=True)
         ticks.append(pilot.handle(Tick(0.2 + k * dwell)).decision)
     assert all(d.walk == (0.0, 0.0, 0.0) and d.reason.startswith("self-calibration") for d in ticks)
-    assert len({d.head for d in ticks}) >= 2  # the object, then a landmark-scan yaw
+    assert len({d.head for d in ticks}) >= 2  # the object, then a calibration view
+    views = pilot._calibration_views  # noqa: SLF001
+    assert 1 <= len(views) <= p.standstill_views and ticks[1].head in views
+    for yaw, pitch in views:
+        points, landmarks = pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(yaw, pitch))
+        assert points >= p.min_points and landmarks >= p.min_landmarks
     pilot._t_stored = 0.2 + p.standstill - 1.0  # noqa: SLF001 - fixes keep coming: it lasts its full length
     assert pilot._calibration_standstill(0.2 + p.standstill - 0.01)  # noqa: SLF001
     over = 0.2 + p.standstill + 0.01  # the standstill is bounded
@@ -287,9 +292,14 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
     patient = Pilot(CONFIG, INFO)  # no fix to store comes (sparse markers): it ends after the patience
     assert not patient._calibration_standstill(0.0, start=True)  # noqa: SLF001 - no estimate yet: following the sighting comes first
+    patient.pose, patient.anchored = (0.0, 0.0, 0.0), True
     patient.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     assert patient._calibration_standstill(0.0, start=True)  # noqa: SLF001
     assert not patient._calibration_standstill(p.standstill_patience + 0.01)  # noqa: SLF001
+    nowhere = Pilot(CONFIG, INFO)  # from far outside the room no marker is big enough to detect
+    nowhere.pose, nowhere.anchored = (40.0, 40.0, 0.0), True
+    nowhere.ekf.initialize((41.0, 40.0, 0.0), 0.0, 0.1)
+    assert not nowhere._calibration_standstill(0.0, start=True) and not nowhere._calibration_standstill(1.0)  # noqa: SLF001
     applied = Pilot(CONFIG, INFO)
     applied.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
