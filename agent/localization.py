@@ -1035,6 +1035,7 @@ class RobotLocalizer:
         margin = self.params.view_margin_px
         size = np.array([self.camera.width, self.camera.height])
         chosen = []
+        landmarks = 0
         corners = self.detector.aruco_corners
         if len(corners):
             uv, z = model.project(p, corners)
@@ -1045,6 +1046,7 @@ class RobotLocalizer:
             side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
             ok = facing & inside & (np.nan_to_num(side) >= self.params.aruco_min_side_px)
             chosen.append(corners.reshape(-1, 4, 3)[ok].reshape(-1, 3))
+            landmarks += int(ok.sum())
         if self.detector.color_landmarks and self.perception is not None:
             L = np.array([lm.position for lm in self.detector.color_landmarks], dtype=float)
             diameters = np.array([lm.diameter for lm in self.detector.color_landmarks])
@@ -1054,10 +1056,11 @@ class RobotLocalizer:
             area = math.pi * radius**2
             rim = (margin + radius)[:, None]  # a disc cut by the border is dropped by the detector
             inside = np.all((uv >= rim) & (uv <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
-            chosen.append(L[inside & (area >= self.perception.landmark_min_area)])
+            seen = inside & (area >= self.perception.landmark_min_area)
+            chosen.append(L[seen])
+            landmarks += int(seen.sum())
         X = np.vstack(chosen) if chosen else np.empty((0, 3))
-        markers = int(np.sum(ok)) if len(corners) else 0
-        return X, model.project(p, X)[0], markers + (len(X) - 4 * markers)
+        return X, model.project(p, X)[0], landmarks
 
     def best_landmark_view(self, pose: Pose, camera_in_robot: Callable[[float, float], np.ndarray],
                            directions: Iterable[Tuple[float, float]]) -> Optional[LandmarkView]:

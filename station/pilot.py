@@ -34,11 +34,12 @@ is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, i
 them in order: the estimate of the odometry frame becomes the same estimate in W.
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
-standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick with an object estimate
-(a side-cut sighting alone gives none, and the scan would look away from it): a zero walk, the head
-alternating between the object and the directions predicted to show a fix to store, until an
-estimate is applied (no standstill when no direction is predicted to), ``self_calibration.standstill`` s at most and ``standstill_patience`` s
-without a fix to store (no keyframes meanwhile). Then in ACTIVE the walk command is the
+standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
+with an object estimate (a side-cut sighting alone gives none, and the scan would look away from
+it): a zero walk, the head alternating between the object and the directions predicted to show a
+fix to store, until an estimate is applied, ``self_calibration.standstill`` s at most and
+``standstill_patience`` s without a fix to store (no keyframes meanwhile); no standstill when no
+direction is predicted to show one. Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
 and the next yaw of the landmark scan.

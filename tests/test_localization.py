@@ -552,6 +552,32 @@ def test_predicted_fix_and_best_landmark_view(params, perception, robot, tmp_pat
     assert 0.5 * view.position_std < measured < 4.0 * view.position_std  # the residuals may raise sigma above the floor
 
 
+@pytest.mark.parametrize("layout", ["walls", "colours", "mixed"])
+def test_visible_landmarks_counts_what_is_wholly_in_the_image(params, perception, robot, layout):
+    """``visible_landmarks`` (the self-calibration standstill picks its views by it) against the
+    projection of every landmark: its landmarks are those wholly in view (a marker facing the camera
+    and big enough to detect, a ball with its rim), its points four per marker and one per ball."""
+    landmarks = load_landmark_map(CONFIG_DIR / "landmarks" / f"{layout}.yaml")
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, landmarks, camera, perception)
+    any_size = RobotLocalizer(dataclasses.replace(params, aruco_min_side_px=4.0), landmarks, camera, perception)
+    rng = np.random.default_rng(5)
+    agree, shown = 0, 0
+    for _ in range(40):
+        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
+        pose = (d * math.cos(az), d * math.sin(az), rng.uniform(-math.pi, math.pi))
+        T_BC = robot.camera_in_robot(rng.uniform(-1.5, 1.5), rng.uniform(-0.2, 0.3))
+        points, seen = localizer.visible_landmarks(pose, T_BC)
+        T_WC = planar_transform(*pose) @ T_BC
+        wholly = landmarks_in_image(camera, landmarks, T_WC, margin=params.view_margin_px)
+        per_landmark = {"walls": (4, 4), "colours": (1, 1), "mixed": (1, 4)}[layout]
+        assert per_landmark[0] * seen <= points <= per_landmark[1] * seen
+        assert seen <= wholly  # never more than in view (the size rules only remove)
+        agree += any_size.visible_landmarks(pose, T_BC)[1] == wholly
+        shown += seen > 0
+    assert shown >= 20 and agree >= 36
+
+
 def test_dead_reckoning_covariance_says_what_it_is_worth(params, perception, robot, room):
     """After a fix, 15 s of walking on odometry alone (the simulator's per-run speed and turn scale
     errors and slip): the position error stays within the 2-D 99 % bound sqrt(9.21) of the
