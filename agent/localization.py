@@ -4,11 +4,14 @@ Landmark points (image u_i <-> world X_i):
 
 * ArUco markers (``cv2.aruco.ArucoDetector``): the four corners of each marker of the map, in
   ``Landmark.aruco_corners()`` order, refined by ``cv2.cornerSubPix`` on the full image with a
-  half-window of side / 8 (2-6 px; at least f + 1 after a reduction by f). Detection
+  half-window of side / 8 (2-6 px; at least f + 1 after a reduction by f), then re-estimated as the
+  crossings of the marker's edge lines (agent/marker_corners.py: cornerSubPix alone pulls a blurred
+  convex corner 0.2-0.4 px inwards). Detection
   runs on the image reduced by an integer factor f to at most ``aruco_detection_width`` wide. With a
   pose prior, only boxes around the markers' predicted projections are searched (padded by half the
   projected side plus ``aruco_track_margin`` px; overlapping boxes merged), each at the largest
-  factor that keeps its smallest predicted marker ``aruco_min_side_px`` wide. Without a prior, or
+  factor that keeps its smallest predicted marker ``aruco_min_side_px`` wide, and again at full size
+  when that found fewer markers than predicted in it. Without a prior, or
   when the boxes gave fewer than ``min_points`` corners, the whole reduced frame is searched, and
   the whole full-size frame too when that found fewer than ``aruco_full_resolution_below`` markers
   (small, far markers vanish in the reduced image).
@@ -24,7 +27,8 @@ Planar model. The robot stands on the floor: height, roll and pitch come from th
 (T_BC), but the torso's roll is known only to a few tenths of a degree (it sways while walking and
 the joint sensors lag), so the camera is modelled as T_BC' = Rx(delta) Ry(epsilon) T_BC with delta
 a small unknown roll, held by a prior of std ``roll_sigma`` while walking and ``roll_sigma_still``
-when the odometry moved less than ``still_motion`` since the previous reading (standing: no sway;
+when the odometry moved less than ``still_motion`` per reading for ``still_settle`` s (standing: no sway;
+a walk's odometry can pause for a reading while the torso still rolls;
 far markers all at one height do not tell roll from position, so a loose prior would cost precision
 for nothing), and epsilon a small unknown pitch, held by ``pitch_sigma``. The pitch cannot be left
 to T_BC: 0.1 deg of it (a head pitch sensor's resolution, the sway's bob) shifts every point by a
@@ -127,6 +131,7 @@ import cv2
 import numpy as np
 
 from agent.camera import CameraModel
+from agent.marker_corners import refine_corners
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
 from nao_core.geometry import (
@@ -156,6 +161,7 @@ class LocalizationParams:
     roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
     pitch_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the camera pitch missing from T_BC
     still_motion: float = field(metadata=bounds(0.0, 0.1))  # m and rad: odometry moving less than this per reading is standing (sensor jitter)
+    still_settle: float = field(metadata=bounds(0.0, 10.0))  # s: ... once it has not moved for this long (a walk's odometry pauses between readings)
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
     single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
@@ -172,6 +178,7 @@ class LocalizationParams:
     odom_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_s, std of the walk's speed scale error
     odom_turn_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_w, std of the turn scale error
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
+    aruco_edge_refinement: bool  # corners as the intersections of the marker's edge lines (agent/marker_corners.py)
     aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
     aruco_min_side_px: float = field(metadata=bounds(4.0, 200.0))  # px, smallest marker side the detector is asked to find (in its image)
     aruco_full_resolution_below: int = field(metadata=bounds(0, 1000))  # markers found reduced: below this, search full size too
@@ -226,6 +233,7 @@ _CORNER_REFINEMENT = {
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
 }
+Box = Tuple[int, int, int, int, float, int]  # x0, y0, x1, y1 (full-size px), smallest predicted marker side, markers predicted
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
 
@@ -450,12 +458,14 @@ class LandmarkDetector:
                     found.append((name, int(marker_id), c.reshape(4, 2)))
         return found
 
-    def aruco_points(self, gray: np.ndarray, boxes: Optional[List[Tuple[int, int, int, int, float]]] = None) -> _Points:
+    def aruco_points(self, gray: np.ndarray, boxes: Optional[List[Box]] = None) -> _Points:
         """Map markers found in a grey image (their corners, refined on the full image).
 
-        ``boxes``: (x0, y0, x1, y1, smallest predicted marker side), full-size pixels; each searched
-        at the largest integer reduction f <= the frame's that keeps that side >= ``aruco_min_side_px``.
-        Without boxes: the whole frame reduced, then at full size when that found too few.
+        ``boxes``: (x0, y0, x1, y1, smallest predicted marker side, markers predicted), full-size
+        pixels; each searched at the largest integer reduction f <= the frame's that keeps that side
+        >= ``aruco_min_side_px``, and again at full size when that found fewer markers than predicted
+        (a marker at the limit can vanish in the reduced box). Without boxes: the whole frame reduced,
+        then at full size when that found too few.
         """
         frame_factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
         min_side = self.params.aruco_min_side_px
@@ -477,9 +487,12 @@ class LandmarkDetector:
             if frame_factor > 1 and len(found) < self.params.aruco_full_resolution_below:
                 search(0, 0, gray.shape[1], gray.shape[0], 1)
         else:
-            for x0, y0, x1, y1, side in boxes:
+            for x0, y0, x1, y1, side, predicted in boxes:
                 factor = int(max(1, min(frame_factor, side // min_side)))
+                before = len(found)
                 search(x0, y0, x1, y1, factor)
+                if factor > 1 and len(found) - before < predicted:
+                    search(x0, y0, x1, y1, 1)
         points = _Points.empty()
         for (name, marker_id), (corners, factor) in found.items():
             # Half-window: side / 8 (within the marker's outer black cells), at least the reduction's
@@ -488,10 +501,12 @@ class LandmarkDetector:
             half = int(min(6, max(2, side // 8, factor + 1 if factor > 1 else 0)))
             corners = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1),
                                        _SUBPIX_CRITERIA).reshape(4, 2)
+            if self.params.aruco_edge_refinement:
+                corners = refine_corners(gray, corners, self.dictionaries[name].markerSize + 2)
             points = points + _Points(self.aruco[name][marker_id], corners.astype(float), [marker_id] * 4, np.zeros(4, dtype=int))
         return points
 
-    def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Tuple[int, int, int, int, float]]:
+    def predicted_boxes(self, camera: CameraModel, T_WC: np.ndarray) -> List[Box]:
         """Pixel boxes (x0, y0, x1, y1, smallest marker side in it), clipped to the image, around the
         projections from T_WC of the map markers in front of the camera and facing it, each padded by
         half its projected side plus ``aruco_track_margin``; overlapping boxes are merged."""
@@ -513,7 +528,7 @@ class LandmarkDetector:
         lo = np.clip(np.floor(lo - pad), 0, size).astype(int)
         hi = np.clip(np.floor(hi + pad) + 1, 0, size).astype(int)
         keep = facing & near
-        return _merge_boxes([[*l, *h, s] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
+        return _merge_boxes([[*l, *h, s, 1] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
 
     def color_blobs(self, image_bgr: np.ndarray) -> Dict[str, np.ndarray]:
         """Blob centroids (N x 2, full-size pixels) per colour class of the map, off the border."""
@@ -592,7 +607,8 @@ class RobotLocalizer:
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
         self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
-        self._moving = False  # odometry moved at the last reading (a mission starts standing)
+        self._moving = False  # odometry moved within ``still_settle`` (a mission starts standing)
+        self._last_motion = -math.inf  # stamp of the last odometry reading that moved
 
     def reset(self) -> None:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
@@ -617,7 +633,9 @@ class RobotLocalizer:
         if not math.isfinite(stamp) or stamp < self._stamp:
             return
         if self._odom is not None:
-            self._moving = bool(np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion))
+            if np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion):
+                self._last_motion = stamp
+            self._moving = stamp - self._last_motion < self.params.still_settle
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
             heading = compose(self._correction, self._odom)[2]
@@ -1149,8 +1167,9 @@ def _difference(a: Pose, b: Pose) -> np.ndarray:
     return np.array([a[0] - b[0], a[1] - b[1], wrap_angle(a[2] - b[2])])
 
 
-def _merge_boxes(boxes: List[list]) -> List[Tuple[int, int, int, int, float]]:
-    """Boxes (x0, y0, x1, y1, side) with every overlapping pair replaced by their union (smallest side), until none overlap."""
+def _merge_boxes(boxes: List[list]) -> List[Box]:
+    """Boxes (x0, y0, x1, y1, side, markers) with every overlapping pair replaced by their union
+    (smallest side, markers summed), until none overlap."""
     merged: List[list] = []
     for box in boxes:
         while True:
@@ -1159,9 +1178,9 @@ def _merge_boxes(boxes: List[list]) -> List[Tuple[int, int, int, int, float]]:
                 break
             for m in overlapping:
                 merged.remove(m)
-                box = [min(box[0], m[0]), min(box[1], m[1]), max(box[2], m[2]), max(box[3], m[3]), min(box[4], m[4])]
+                box = [min(box[0], m[0]), min(box[1], m[1]), max(box[2], m[2]), max(box[3], m[3]), min(box[4], m[4]), box[5] + m[5]]
         merged.append(box)
-    return [(int(b[0]), int(b[1]), int(b[2]), int(b[3]), float(b[4])) for b in merged]
+    return [(int(b[0]), int(b[1]), int(b[2]), int(b[3]), float(b[4]), int(b[5])) for b in merged]
 
 
 def _check_transform(T_BC: object) -> np.ndarray:

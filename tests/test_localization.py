@@ -485,8 +485,9 @@ def test_fix_covariance_is_not_overconfident(params, perception, robot, room):
 
 def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perception, robot, room):
     """VGA orbit views: with a prior 3 cm / 1.5 deg off, the boxes around the predicted markers
-    (a fraction of the frame, small markers at full size) give the same markers and the pose within
-    a millimetre (the full search refines some corners from the reduced image) as searching the whole frame; with a
+    (a fraction of the frame, small markers at full size) give the markers of the whole frame's search
+    (or more: a box whose reduced search loses a marker is searched at full size) and its pose within
+    two millimetres; with a
     prior 1 m and 90 deg off, the boxes find too few corners and the whole frame is searched."""
     world = SimWorld("can", robot, "vga", seed=2)
     camera = camera_of(robot, "vga")
@@ -498,11 +499,11 @@ def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perc
         frame = world.render()
         near = (truth[0] + 0.03, truth[1] - 0.02, truth[2] + math.radians(1.5))
         boxes = localizer.detector.predicted_boxes(camera, planar_transform(*near) @ frame.T_BC)
-        assert 0 < sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1, _ in boxes) < 0.5 * camera.width * camera.height
+        assert 0 < sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1, *_ in boxes) < 0.5 * camera.width * camera.height
         full = localizer.measure(frame.image, frame.T_BC)
         for prior in (near, (truth[0] + 1.0, truth[1], truth[2] + math.pi / 2)):
             fix = localizer.measure(frame.image, frame.T_BC, prior)
-            assert sorted(fix.landmark_ids) == sorted(full.landmark_ids)
+            assert set(full.landmark_ids) <= set(fix.landmark_ids)  # a box searched reduced that lost one is searched at full size
             assert fix.pose == pytest.approx(full.pose, abs=2e-3)
             distance, angle = pose_error(fix.pose, truth)
             assert distance < 0.01 and angle < math.radians(0.5)
@@ -656,11 +657,20 @@ def test_roll_is_held_tight_while_standing_and_freed_while_walking(params, perce
 def test_a_standing_robots_odometry_jitter_keeps_the_still_roll_prior(params, room):
     """Sensor odometry of a standing NAO jitters by fractions of a millimetre: still ``still_motion``
     per reading, it is standing (the tight roll prior; self-calibration stores such fixes); a step of
-    a walk at 0.1 m/s read at 50 Hz (2 mm) is moving."""
+    a walk at 0.1 m/s read at 50 Hz (2 mm) is moving, and so is a reading where the walk's odometry
+    paused (the torso still rolls: stored, such fixes drifted the self-calibration by 2 %), until it
+    has not moved for ``still_settle`` s."""
     localizer = RobotLocalizer(params, room, camera_of(load_robot_model(), "qvga"))
     jitter = 0.4 * params.still_motion
     localizer.on_odometry((0.0, 0.0, 0.0), 0.0)
     localizer.on_odometry((jitter, -jitter, jitter), 0.02)
     assert not localizer._moving  # noqa: SLF001
-    localizer.on_odometry((jitter + 0.1 * 0.02, -jitter, jitter), 0.04)
+    walked = (jitter + 0.1 * 0.02, -jitter, jitter)
+    localizer.on_odometry(walked, 0.04)
     assert localizer._moving  # noqa: SLF001
+    localizer.on_odometry(walked, 0.06)  # the odometry paused for a reading
+    assert localizer._moving  # noqa: SLF001
+    localizer.on_odometry(walked, 0.04 + 0.9 * params.still_settle)
+    assert localizer._moving  # noqa: SLF001
+    localizer.on_odometry(walked, 0.04 + params.still_settle)
+    assert not localizer._moving  # noqa: SLF001

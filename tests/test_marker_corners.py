@@ -1,0 +1,117 @@
+"""Marker corners from the marker's edge lines (agent/marker_corners.py) against ground truth: a
+marker drawn at known sub-pixel corners and blurred as a camera blurs it, and rendered frames of a
+user's wall layout at known poses."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.localization import LandmarkDetector, LocalizationParams
+from agent.marker_corners import refine_corners
+from nao_core.config import CONFIG_DIR, load
+from nao_core.geometry import wrap_angle
+from nao_core.robot_model import load_robot_model
+from nao_sim.scenarios import Room, load_sim_config
+from nao_sim.world import SimWorld
+
+PARAMS = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
+DICTIONARY = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+CELLS = DICTIONARY.markerSize + 2
+SUPERSAMPLE = 8
+
+
+def radial_errors(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per corner, its error along the diagonal from the marker's centre (positive outwards)."""
+    outward = truth - truth.mean(axis=0)
+    return np.sum((found - truth) * outward / np.linalg.norm(outward, axis=1, keepdims=True), axis=1)
+
+
+def blurred_marker(rng: np.random.Generator, blur: float):
+    """A VGA-like grey image of one 4x4 marker, 14-40 px, turned and placed at sub-pixel corners, drawn
+    8 times finer and averaged down (area-exact), then blurred by a Gaussian of ``blur`` px and noised:
+    (image, true corners 4 x 2 in cv2.aruco order)."""
+    side, angle, centre = rng.uniform(14, 40), rng.uniform(0, 2 * math.pi), rng.uniform(40, 60, 2)
+    squash = rng.uniform(0.7, 1.0)  # seen obliquely
+    local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * side * np.array([squash, 1.0])
+    c, s = math.cos(angle), math.sin(angle)
+    truth = local @ np.array([[c, s], [-s, c]]) + centre
+    texture = cv2.aruco.generateImageMarker(DICTIONARY, int(rng.integers(50)), CELLS * 20, borderBits=1)
+    n = texture.shape[0]
+    src = np.float32([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]])
+    fine_corners = np.float32((truth + 0.5) * SUPERSAMPLE - 0.5)
+    H = cv2.getPerspectiveTransform(src, fine_corners)
+    size = 100 * SUPERSAMPLE
+    marker = cv2.warpPerspective(texture, H, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inside = cv2.warpPerspective(np.full_like(texture, 255), H, (size, size), flags=cv2.INTER_LINEAR, borderValue=0)
+    fine = np.where(inside > 127, marker, 235).astype(np.float32)
+    image = cv2.resize(fine, (100, 100), interpolation=cv2.INTER_AREA)
+    image = cv2.GaussianBlur(image, (0, 0), blur) + rng.normal(0.0, 2.0, image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8), truth
+
+
+def corner_subpix(gray: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """cv2.cornerSubPix with the localizer's half-window (side / 8, 2-6 px)."""
+    side = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min())
+    half = int(min(6, max(2, side // 8)))
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    return cv2.cornerSubPix(gray, np.float32(corners).reshape(-1, 1, 2), (half, half), (-1, -1), criteria).reshape(4, 2).astype(float)
+
+
+@pytest.mark.parametrize("blur", [0.5, 1.0])
+def test_edge_lines_find_blurred_corners_without_the_inward_pull(blur):
+    """Started 0.7 px off (a detector's integer corner), cornerSubPix converges into the blurred tip,
+    inwards; the edge lines put the corners where they are, to a few hundredths of a pixel."""
+    rng = np.random.default_rng(int(blur * 10))
+    subpix, edges = [], []
+    for _ in range(30):
+        image, truth = blurred_marker(rng, blur)
+        start = corner_subpix(image, truth + rng.uniform(-0.7, 0.7, truth.shape))
+        subpix.append(radial_errors(start, truth))
+        edges.append(radial_errors(refine_corners(image, start, CELLS), truth))
+    subpix, edges = np.concatenate(subpix), np.concatenate(edges)
+    assert np.mean(subpix) < -0.1  # the bias the module removes
+    assert abs(np.mean(edges)) < 0.04 and abs(np.mean(edges)) < abs(np.mean(subpix)) / 4, (np.mean(subpix), np.mean(edges))
+    assert np.median(np.abs(edges)) < 0.1
+
+
+def test_without_contrast_or_room_for_a_profile_the_corners_are_kept():
+    corners = np.array([[40.0, 40.0], [60.0, 40.0], [60.0, 60.0], [40.0, 60.0]])
+    assert np.array_equal(refine_corners(np.full((100, 100), 128, np.uint8), corners, CELLS), corners)
+    tiny = 40.0 + (corners - 40.0) * 0.25  # 5 px: no profile fits in a black border of 0.8 px
+    image, _ = blurred_marker(np.random.default_rng(1), 0.7)
+    assert np.array_equal(refine_corners(image, tiny, CELLS), tiny)
+
+
+def test_rendered_wall_markers_have_unbiased_corners():
+    """Wall markers of 8 cm seen from 1-3 m (12-30 px) in rendered VGA frames: the detector's corners
+    against the projection of the true camera, with the edge refinement and without."""
+    robot = load_robot_model()
+    config = dataclasses.replace(load_sim_config(), landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0))
+    world = SimWorld("can", robot, "vga", seed=1, config=config)
+    intrinsics = world.renderer.intrinsics
+    detectors = {on: LandmarkDetector(dataclasses.replace(PARAMS, aruco_edge_refinement=on), world.landmarks, None)
+                 for on in (True, False)}
+    rng = np.random.default_rng(2)
+    ox, oy = world.scenario.position
+    radial = {True: [], False: []}
+    for _ in range(16):
+        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
+        pose = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0, 0.2)))
+        world.teleport(pose, robot.look_at(pose, (ox, oy, 0.1)))
+        gray = cv2.cvtColor(world.render().image, cv2.COLOR_BGR2GRAY)
+        T_WC = np.array(world.truth()["camera"]["T_WC"])
+        for on, detector in detectors.items():
+            points = detector.aruco_points(gray)
+            for k in range(0, len(points), 4):
+                X_C = (points.X[k:k + 4] - T_WC[:3, 3]) @ T_WC[:3, :3]
+                truth, _ = cv2.projectPoints(X_C, np.zeros(3), np.zeros(3), intrinsics.K, np.asarray(intrinsics.dist, float))
+                radial[on].append(radial_errors(points.u[k:k + 4], truth.reshape(4, 2)))
+    edges, subpix = np.concatenate(radial[True]), np.concatenate(radial[False])
+    assert len(edges) >= 40 and len(edges) == len(subpix)
+    assert abs(np.mean(edges)) < 0.08 and abs(np.mean(edges)) < abs(np.mean(subpix)) / 2, (np.mean(edges), np.mean(subpix))
+    assert np.median(np.abs(edges)) < 0.2
