@@ -203,6 +203,8 @@ class PoseFix:
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
+    pitch: float = 0.0  # rad, camera pitch the fit found missing from T_BC
+    pitch_sigma: float = 0.0  # rad, the pitch prior it was fitted with
 
 
 @dataclass(frozen=True)
@@ -780,7 +782,7 @@ class RobotLocalizer:
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
-                       roll_sigma=self._roll_sigma)
+                       roll_sigma=self._roll_sigma, pitch=float(p[4]), pitch_sigma=self.params.pitch_sigma)
 
     # -- markers -------------------------------------------------------------------------------
 
