@@ -404,7 +404,7 @@ class Renderer:
         c = T_WC[:3, 3].astype(np.float32)
         R = T_WC[:3, :3].astype(np.float32)
         d = np.stack([R[i, 0] * self._ray_x + R[i, 1] * self._ray_y + R[i, 2] for i in range(3)])  # no BLAS threads
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # rays parallel to a wall or the floor
             t_wall = np.minimum((np.copysign(hs, d[0]) - c[0]) / d[0], (np.copysign(hs, d[1]) - c[1]) / d[1])
             t_floor = -c[2] / d[2]
         floor = (t_floor > 0) & (t_floor < t_wall)
