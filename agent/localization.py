@@ -347,7 +347,7 @@ class PlanarModel:
         """Gauss-Newton on (x, y, theta, delta, epsilon): (p, rms, per-point error N, J^T J 5 x 5). Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
-        prior = _tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
+        prior = tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
@@ -390,7 +390,7 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
     return seeds
 
 
-def _tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
+def tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
     """Diagonal of J^T J the roll and pitch priors add for (x, y, theta, delta, epsilon), in pixel units."""
     return np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
 
@@ -1040,7 +1040,7 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + np.diag(_tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
+        H = Jr.T @ Jr + np.diag(tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]

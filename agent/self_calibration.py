@@ -56,7 +56,7 @@ from typing import List, Optional
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
+from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix, tilt_information
 from nao_core.config import bounds
 from nao_core.landmark_map import LandmarkMap
 
@@ -240,6 +240,5 @@ class SelfCalibration:
         Jc[:, 1, 1] = K0[1, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]
         Jc[:, 0, 2] = 1.0
         Jc[:, 1, 3] = 1.0
-        sigma = self.params.pixel_sigma
-        tilt = np.array([0.0, 0.0, 0.0, (sigma / max(fix.roll_sigma, 1e-9)) ** 2, (sigma / max(fix.pitch_sigma, 1e-9)) ** 2])
+        tilt = tilt_information(self.params.pixel_sigma, fix.roll_sigma, fix.pitch_sigma)
         return (uv - fix.u).ravel(), J.reshape(-1, 5), Jc.reshape(-1, 4), tilt
