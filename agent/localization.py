@@ -203,8 +203,6 @@ class PoseFix:
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
-    pitch: float = 0.0  # rad, camera pitch the fit found missing from T_BC
-    pitch_sigma: float = 0.0  # rad, the pitch prior it was fitted with
 
 
 @dataclass(frozen=True)
@@ -347,7 +345,7 @@ class PlanarModel:
         """Gauss-Newton on (x, y, theta, delta, epsilon): (p, rms, per-point error N, J^T J 5 x 5). Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
-        prior = tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
+        prior = _tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
@@ -390,7 +388,7 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
     return seeds
 
 
-def tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
+def _tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
     """Diagonal of J^T J the roll and pitch priors add for (x, y, theta, delta, epsilon), in pixel units."""
     return np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
 
@@ -782,7 +780,7 @@ class RobotLocalizer:
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
-                       roll_sigma=self._roll_sigma, pitch=float(p[4]), pitch_sigma=self.params.pitch_sigma)
+                       roll_sigma=self._roll_sigma)
 
     # -- markers -------------------------------------------------------------------------------
 
@@ -1040,7 +1038,7 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + np.diag(tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
+        H = Jr.T @ Jr + np.diag(_tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]

@@ -10,25 +10,20 @@ Parameters: c = (s_x, s_y, d_u, d_v), the corrected pinhole
 
     f_x' = f_x (1 + s_x),  f_y' = f_y (1 + s_y),  c_x' = c_x + d_u,  c_y' = c_y + d_v,
 
-common to all stored fixes k, each with its own planar pose p_k = (x, y, theta, delta, epsilon)
-(the torso roll delta and the camera pitch epsilon held by the fix's priors w_k = sigma_px /
-sigma_roll,k and v_k = sigma_px / sigma_pitch,k), the projection of agent/localization.py
-``PlanarModel``. Each fix keeps its own pitch as the localizer does: the head pitch sensor and the
-camera mount leave T_BC a tenth of a degree or two off, differently at each head position, and a
-fit without it turned that into a vertical focal error (0.8 % for a pitch error of 0.15 deg, at 5-17
-times its stated std, on synthetic fixes and in the mission matrix). Bundle adjustment with known
-world points, Gauss-Newton on all of them at once, the poses eliminated by the Schur complement:
+common to all stored fixes k, each with its own planar pose p_k = (x, y, theta, delta) (the torso
+roll delta held by the fix's roll prior w_k = sigma_px / sigma_roll,k), the projection of
+agent/localization.py ``PlanarModel``. Bundle adjustment with known world points, Gauss-Newton on
+all of them at once, the poses eliminated by the Schur complement:
 
-    A_k = J_pk^T J_pk + diag(0, 0, 0, w_k^2, v_k^2),  B_k = J_pk^T J_ck,
+    A_k = J_pk^T J_pk + diag(0, 0, 0, w_k^2),  B_k = J_pk^T J_ck,
     S = sum_k (J_ck^T J_ck - B_k^T A_k^-1 B_k) + Lambda,   b = sum_k (J_ck^T r_k - B_k^T A_k^-1 g_pk) + Lambda c,
     dc = -S^-1 b,   dp_k = -A_k^-1 (g_pk + B_k dc),
 
 with J_c: du/ds_x = f_x x/z, dv/ds_y = f_y y/z, du/dd_u = dv/dd_v = 1, and the prior
 Lambda = sigma_px^2 diag(1/sigma_s^2, 1/sigma_s^2, 1/sigma_d^2, 1/sigma_d^2) (what a calibration
 may be off by). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
-principal point shift across the image is nearly a turn of the robot, and one down the image nearly
-a pitch of the camera: d_u and d_v are held mostly by their prior (and each fix absorbs them); the
-focal scales are what the points observe. Fixes whose RMS after the fit exceeds
+principal point shift across the image is nearly a turn of the robot (d_u is held mostly by its
+prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
 
 A fix is stored when it has ``min_points`` points of ``min_landmarks`` landmarks or more: four
@@ -56,7 +51,7 @@ from typing import List, Optional
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix, tilt_information
+from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
 from nao_core.config import bounds
 from nao_core.landmark_map import LandmarkMap
 
@@ -90,9 +85,8 @@ class _Fix:
     X: np.ndarray  # N x 3 world points
     u: np.ndarray  # N x 2 pixels, distortion removed
     T_BC: np.ndarray
-    p: np.ndarray  # (x, y, theta, delta, epsilon) of the fix
+    p: np.ndarray  # (x, y, theta, delta) of the fix
     roll_sigma: float
-    pitch_sigma: float
 
 
 @dataclass(frozen=True)
@@ -152,8 +146,7 @@ class SelfCalibration:
                 or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers
-        self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll, fix.pitch]), fix.roll_sigma,
-                                         fix.pitch_sigma)])[-p.max_frames:]
+        self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
         self._last_stamp = stamp
         self.stored += 1
         self._new += 1
@@ -194,9 +187,11 @@ class SelfCalibration:
                 blocks = []
                 camera = corrected(self.configured, c)
                 for fix, pose in zip(fixes, poses):
-                    r, Jp, Jc, tilt = self._linearize(camera, K0, fix, pose)
-                    A = Jp.T @ Jp + np.diag(tilt)
-                    g = Jp.T @ r + tilt * pose
+                    r, Jp, Jc, w2 = self._linearize(camera, K0, fix, pose)
+                    A = Jp.T @ Jp
+                    A[3, 3] += w2
+                    g = Jp.T @ r
+                    g[3] += w2 * pose[3]
                     B = Jp.T @ Jc
                     A_inv = np.linalg.inv(A)
                     S += Jc.T @ Jc - B.T @ A_inv @ B
@@ -216,7 +211,7 @@ class SelfCalibration:
             return None
         rms = np.array([float(np.sqrt(np.mean(r**2) * 2.0)) for r in residuals])
         n = sum(len(r) for r in residuals)
-        dof = max(1, n - 5 * len(fixes) - 4)
+        dof = max(1, n - 4 * len(fixes) - 4)
         s2 = max(p.pixel_sigma**2, float(sum(np.sum(r**2) for r in residuals)) / dof)
         covariance = s2 * np.linalg.inv(S)
         return Calibration(c, covariance, len(fixes), float(np.sqrt(np.mean(np.concatenate(residuals) ** 2) * 2.0))), rms
@@ -230,7 +225,7 @@ class SelfCalibration:
         return (uv - fix.u).ravel()
 
     def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
-        """Residuals (2N), J_p (2N x 5), J_c (2N x 4) and the prior weights (0, 0, 0, w^2, v^2) of one fix at (c, pose)."""
+        """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
         uv, z, J = PlanarModel(camera, fix.T_BC).jacobian(pose, fix.X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point behind the camera")
@@ -240,5 +235,5 @@ class SelfCalibration:
         Jc[:, 1, 1] = K0[1, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]
         Jc[:, 0, 2] = 1.0
         Jc[:, 1, 3] = 1.0
-        tilt = tilt_information(self.params.pixel_sigma, fix.roll_sigma, fix.pitch_sigma)
-        return (uv - fix.u).ravel(), J.reshape(-1, 5), Jc.reshape(-1, 4), tilt
+        w2 = (self.params.pixel_sigma / fix.roll_sigma) ** 2
+        return (uv - fix.u).ravel(), J.reshape(-1, 4), Jc.reshape(-1, 4), w2
