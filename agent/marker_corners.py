@@ -5,8 +5,8 @@ An ArUco marker's outer corners are convex L-corners (a dark square on a light b
 lens, the pixels, the renderer's anti-aliasing), the tip of such a corner is rounded, and
 ``cv2.cornerSubPix`` (every gradient g_p in a window orthogonal to p - q) pulls q into the rounding:
 inward, by a fixed fraction of a pixel. Measured on rendered VGA frames of the wall layout (markers
-of 12-30 px): -0.13 px along the diagonal, which shrinks a 16 px marker by 1 % and scales its range
-or the camera's self-calibrated focal length alike. The straight parts of the edges are not
+of 12-30 px, the renderer's fill exact): -0.23 px along the diagonal, which shrinks a 16 px marker by
+2 % and scales its range or the camera's self-calibrated focal length alike (edge lines: +0.00 px). The straight parts of the edges are not
 biased: with a symmetric blur the intensity across a straight edge rises fastest on the edge itself.
 
 For each edge k from corner c_k to c_{k+1} (outward unit normal n_k), at samples
@@ -18,8 +18,9 @@ the pixel grid), gives the edge point
 
 with r within the marker's black border (``BORDER_FRACTION`` of a cell): the edge between the
 border and a white bit has the opposite sign and its tail barely moves the peak (the mid-level
-between the profile's ends, tried first, is pulled outwards by it: +0.1 px with a 1 px blur). A line l_k (a unit normal and an offset) is fitted to the e_j by total least
-squares (``cv2.fitLine``), and corner k is the intersection of l_{k-1} and l_k. Lens distortion bends
+between the profile's ends, tried first, is pulled outwards by it: +0.1 px with a 1 px blur). A
+line l_k (a unit normal and an offset) is fitted to the e_j by total least squares
+(``cv2.fitLine``), and corner k is the intersection of l_{k-1} and l_k. Lens distortion bends
 an edge by far less than the edge noise over a marker's 12-40 px and is not modelled.
 
 Measured (tests/test_marker_corners.py, a marker of 14-40 px drawn area-exact, blurred by a
