@@ -495,12 +495,7 @@ class LandmarkDetector:
                     search(x0, y0, x1, y1, 1)
         points = _Points.empty()
         for (name, marker_id), (corners, factor) in found.items():
-            # Half-window: side / 8 (within the marker's outer black cells), at least the reduction's
-            # uncertainty f + 1, 2..6 px; a window reaching a neighbouring corner pulls the estimate.
-            side = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min())
-            half = int(min(6, max(2, side // 8, factor + 1 if factor > 1 else 0)))
-            corners = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1),
-                                       _SUBPIX_CRITERIA).reshape(4, 2)
+            corners = subpix_corners(gray, corners, factor)
             if self.params.aruco_edge_refinement:
                 corners = refine_corners(gray, corners, self.dictionaries[name].markerSize + 2)
             points = points + _Points(self.aruco[name][marker_id], corners.astype(float), [marker_id] * 4, np.zeros(4, dtype=int))
@@ -577,6 +572,17 @@ class LandmarkDetector:
         return points
 
 
+def subpix_corners(gray: np.ndarray, corners: np.ndarray, factor: int = 1) -> np.ndarray:
+    """A marker's 4 x 2 corners refined by ``cv2.cornerSubPix`` on the full image, found on it reduced by ``factor``.
+
+    Half-window: side / 8 (within the marker's outer black cells), at least the reduction's
+    uncertainty f + 1, 2..6 px; a window reaching a neighbouring corner pulls the estimate."""
+    side = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min())
+    half = int(min(6, max(2, side // 8, factor + 1 if factor > 1 else 0)))
+    return cv2.cornerSubPix(gray, np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2), (half, half), (-1, -1),
+                            _SUBPIX_CRITERIA).reshape(4, 2)
+
+
 def _off_border(rect: Tuple[int, int, int, int], shape: Tuple[int, ...]) -> bool:
     x, y, w, h = rect
     return x > 0 and y > 0 and x + w < shape[1] and y + h < shape[0]
@@ -607,8 +613,12 @@ class RobotLocalizer:
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
         self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
-        self._moving = False  # odometry moved within ``still_settle`` (a mission starts standing)
-        self._last_motion = -math.inf  # stamp of the last odometry reading that moved
+        self._last_motion = -math.inf  # stamp of the last odometry reading that moved (a mission starts standing)
+
+    @property
+    def _moving(self) -> bool:
+        """Odometry moved within ``still_settle`` of its latest reading."""
+        return self._stamp - self._last_motion < self.params.still_settle
 
     def reset(self) -> None:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
@@ -635,7 +645,6 @@ class RobotLocalizer:
         if self._odom is not None:
             if np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion):
                 self._last_motion = stamp
-            self._moving = stamp - self._last_motion < self.params.still_settle
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
             heading = compose(self._correction, self._odom)[2]

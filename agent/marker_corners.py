@@ -56,6 +56,7 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, cells: int) -> np.ndar
     if reach < MIN_REACH:
         return corners
     centre = corners.mean(axis=0)
+    s = np.arange(-reach, reach + 1e-9, STEP)  # profile offsets across an edge
     lines = []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
@@ -66,7 +67,6 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, cells: int) -> np.ndar
             n = -n  # outward
         margin = min(0.4, (reach + 1.0) / length)
         t = np.linspace(margin, 1.0 - margin, max(MIN_EDGE_POINTS, int((1.0 - 2.0 * margin) * length / SAMPLE_SPACING)))
-        s = np.arange(-reach, reach + 1e-9, STEP)
         points = a + t[:, None] * (b - a)  # m_j
         grid = points[:, None, :] + s[None, :, None] * n  # samples x steps x 2
         profile = cv2.remap(gray, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),

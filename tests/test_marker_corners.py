@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.localization import LandmarkDetector, LocalizationParams
+from agent.localization import LandmarkDetector, LocalizationParams, subpix_corners
 from agent.marker_corners import refine_corners
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import wrap_angle
@@ -54,14 +54,6 @@ def blurred_marker(rng: np.random.Generator, blur: float):
     return np.clip(image, 0, 255).astype(np.uint8), truth
 
 
-def corner_subpix(gray: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """cv2.cornerSubPix with the localizer's half-window (side / 8, 2-6 px)."""
-    side = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).min())
-    half = int(min(6, max(2, side // 8)))
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    return cv2.cornerSubPix(gray, np.float32(corners).reshape(-1, 1, 2), (half, half), (-1, -1), criteria).reshape(4, 2).astype(float)
-
-
 @pytest.mark.parametrize("blur", [0.5, 1.0])
 def test_edge_lines_find_blurred_corners_without_the_inward_pull(blur):
     """Started 0.7 px off (a detector's integer corner), cornerSubPix converges into the blurred tip,
@@ -70,7 +62,7 @@ def test_edge_lines_find_blurred_corners_without_the_inward_pull(blur):
     subpix, edges = [], []
     for _ in range(30):
         image, truth = blurred_marker(rng, blur)
-        start = corner_subpix(image, truth + rng.uniform(-0.7, 0.7, truth.shape))
+        start = subpix_corners(image, truth + rng.uniform(-0.7, 0.7, truth.shape)).astype(float)
         subpix.append(radial_errors(start, truth))
         edges.append(radial_errors(refine_corners(image, start, CELLS), truth))
     subpix, edges = np.concatenate(subpix), np.concatenate(edges)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from typing import List, Tuple
 
 import numpy as np
 
@@ -42,7 +43,8 @@ PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
 
 
 
-def _layout(name: str, half_size: float) -> tuple:
+def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
+    """The table rows of one layout, and its ratio row (edge-line corners / cornerSubPix corners)."""
     robot = load_robot_model()
     params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
     perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
