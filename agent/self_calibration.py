@@ -32,8 +32,14 @@ so it says nothing about the focal length). Only fixes made standing are stored 
 at most ``max_roll_sigma``): while walking
 the torso sways, rolls and bobs by more than the kinematics report, and a bundle adjustment over
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
-mission). A mission stands while it searches and localizes; when it finds the object at once, it stands at
-the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and
+mission). Nor are fixes made while the head turns, or within ``head_settle`` s after it turned
+faster than ``head_still_speed``: the head angles read for a frame are those of its capture
+stamp, and a stamp a few milliseconds off at the head's speed tilts the fix's camera by a few
+milliradians, which the pitch-held bundle adjustment takes for a vertical focal or principal point
+error (measured in the matrix: two such fixes of eight, 2.3 and 0.8 px off in v, put the vertical
+focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and localizes; when it finds the object at once, it stands at
+the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and,
+``standstill_dwell`` s each (time to get there and settle),
 the ``standstill_views`` head directions predicted from its pose to show a fix to store, most points
 first and ``standstill_view_spacing`` apart in yaw (station/pilot.py), until an estimate is applied,
 or sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
@@ -46,7 +52,7 @@ on it with focal-scale std <= ``max_scale_std``; until then the configured camer
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -67,6 +73,8 @@ class SelfCalibrationParams:
     min_points: int = field(metadata=bounds(4, 1000))  # a fix with fewer inlier points is not stored
     min_landmarks: int = field(metadata=bounds(2, 1000))  # ... nor one of fewer landmarks (one marker's size is its range)
     max_roll_sigma: float = field(metadata=bounds(1e-6, 0.2))  # rad: a fix fitted with a looser roll prior (walking) is not stored
+    head_still_speed: float = field(metadata=bounds(1e-4, 10.0))  # rad/s: the head turning faster than this ...
+    head_settle: float = field(metadata=bounds(0.0, 10.0))  # s: ... within this long before a fix: the fix is not stored
     min_interval: float = field(metadata=bounds(0.0, 60.0))  # s between stored fixes (consecutive frames say the same)
     max_frames: int = field(metadata=bounds(4, 1000))  # stored fixes (the oldest goes)
     min_frames: int = field(metadata=bounds(2, 1000))  # fixes before an estimate is applied
@@ -76,6 +84,7 @@ class SelfCalibrationParams:
     iterations: int = field(metadata=bounds(1, 100))
     standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
     standstill_patience: float = field(metadata=bounds(0.0, 60.0))  # s: ... and no longer than this without a fix to store
+    standstill_dwell: float = field(metadata=bounds(0.1, 60.0))  # s the head stays on each calibration view, between object dwells
     standstill_views: int = field(metadata=bounds(1, 100))  # head directions the standstill looks through (predicted to give fixes to store)
     standstill_view_spacing: float = field(metadata=bounds(0.0, 3.0))  # rad of head yaw between two of them at least
 
@@ -125,6 +134,8 @@ class SelfCalibration:
         self.stored = 0  # fixes stored so far (the oldest leave ``fixes``)
         self._new = 0
         self._last_stamp = -np.inf
+        self._head: Optional[Tuple[float, float, float]] = None  # (stamp, yaw, pitch) of the last frame
+        self._head_moved = -np.inf  # stamp of the last frame the head turned at
 
     @property
     def camera(self) -> CameraModel:
@@ -137,13 +148,28 @@ class SelfCalibration:
         return (self.params.enabled and markers + balls >= self.params.min_landmarks
                 and 4 * markers + balls >= self.params.min_points)
 
+    def on_head(self, yaw: float, pitch: float, stamp: float) -> None:
+        """A frame's head angles at its capture ``stamp`` (every frame, with a fix or not)."""
+        if self._head is not None and stamp > self._head[0]:
+            speed = max(abs(yaw - self._head[1]), abs(pitch - self._head[2])) / (stamp - self._head[0])
+            if not speed <= self.params.head_still_speed:
+                self._head_moved = stamp
+        if self._head is None or stamp > self._head[0]:
+            self._head = (stamp, yaw, pitch)
+
+    @property
+    def head_settled(self) -> bool:
+        """Has the head been still for ``head_settle`` s up to the last frame (``on_head``)?"""
+        return self._head is not None and self._head[0] - self._head_moved >= self.params.head_settle
+
     def add(self, fix: PoseFix, stamp: float) -> bool:
-        """Store ``fix``; True when a new estimate was applied. Its pixels have the lens distortion removed
-        (by whichever K the localizer had: the distortion hardly depends on a K this close)."""
+        """Store ``fix``, made at ``stamp`` (after ``on_head`` of its frame); True when a new estimate was
+        applied. Its pixels have the lens distortion removed (by whichever K the localizer had: the
+        distortion hardly depends on a K this close)."""
         p = self.params
         if (not p.enabled or fix.inliers is None or len(fix.inliers[0]) < p.min_points
                 or len(fix.landmark_ids) < p.min_landmarks or fix.roll_sigma > p.max_roll_sigma
-                or stamp - self._last_stamp < p.min_interval):
+                or not self.head_settled or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers
         self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]

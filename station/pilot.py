@@ -36,8 +36,9 @@ them in order: the estimate of the odometry frame becomes the same estimate in W
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
 with an object estimate (a side-cut sighting alone gives none, and the scan would look away from
-it): a zero walk, the head alternating between the object and the directions predicted to show a
-fix to store, until an estimate is applied, ``self_calibration.standstill`` s at most and
+it): a zero walk, the head alternating between the object (``gaze_dwell``) and the directions
+predicted to show a fix to store (``standstill_dwell`` each: fixes are stored once the head has
+settled), until an estimate is applied, ``self_calibration.standstill`` s at most and
 ``standstill_patience`` s without a fix to store (no keyframes meanwhile); no standstill when no
 direction is predicted to show one. Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
@@ -289,8 +290,9 @@ class Pilot:
             self.pose = world if world is not None else tuple(float(v) for v in meta.odom)
             T_WC = camera_in_world(self.pose, T_BC)
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
-        if fix is not None:
-            with guarded("calibration"):
+        with guarded("calibration"):
+            self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
+            if fix is not None:
                 stored = self.calibration.stored
                 if self.calibration.add(fix, meta.stamp):
                     self._recalibrated(step, t)
@@ -402,22 +404,29 @@ class Pilot:
 
     # per tick ---------------------------------------------------------------------------------
 
+    def _object_head(self) -> Tuple[float, float]:
+        """The head servo's target on the object estimate (and its last sighting)."""
+        centroid, head_at_capture = self._sighting if self._sighting else (None, None)
+        return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
+
     def _localize_gaze(self, t: float) -> Tuple[float, float]:
         """LOCALIZE: even dwells on the object, odd ones on the next yaw of the landmark scan."""
         p = self.config.mission
         slot = int(t // p.gaze_dwell)
         if slot % 2 == 0 and self.ekf.initialized:
-            centroid, head_at_capture = self._sighting if self._sighting else (None, None)
-            return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
+            return self._object_head()
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 
     def _calibration_gaze(self, t: float) -> Tuple[float, float]:
-        """Self-calibration standstill: even dwells on the object, odd ones through the calibration views."""
-        slot = int(t // self.config.mission.gaze_dwell)
-        if slot % 2 == 0 or not self._calibration_views:
-            return self._localize_gaze(t)
-        return self._calibration_views[(slot // 2) % len(self._calibration_views)]
+        """Self-calibration standstill, from its start: ``gaze_dwell`` on the object, then
+        ``standstill_dwell`` on the next calibration view (long enough for the head to get there and
+        settle: fixes are stored only then), and again."""
+        period = self.config.mission.gaze_dwell + self.config.self_calibration.standstill_dwell
+        cycle, phase = divmod(t - self._standstill, period)
+        if phase < self.config.mission.gaze_dwell or not self._calibration_views:
+            return self._object_head()
+        return self._calibration_views[int(cycle) % len(self._calibration_views)]
 
     def _views_to_calibrate(self) -> List[Tuple[float, float]]:
         """Head directions from the current pose predicted to show a fix the self-calibration stores

@@ -284,6 +284,14 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     for yaw, pitch in views:
         points, landmarks = pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(yaw, pitch))
         assert points >= p.min_points and landmarks >= p.min_landmarks
+    # the third cycle: a view held for standstill_dwell (time to get there and settle), then the object again
+    cycle = 0.2 + 2 * (dwell + p.standstill_dwell)
+    pilot._t_stored = cycle  # noqa: SLF001
+    heads = []
+    for t in (cycle + 0.5 * dwell, cycle + dwell + 0.05, cycle + dwell + p.standstill_dwell - 0.05, cycle + dwell + p.standstill_dwell + 0.05):
+        pilot.mission.on_frame(t, object_seen=True, landmark_fix=True, localized=True)
+        heads.append(pilot.handle(Tick(t)).decision.head)
+    assert heads[1] == heads[2] == views[2 % len(views)] and heads[0] == heads[3] == pilot._object_head()  # noqa: SLF001
     pilot._t_stored = 0.2 + p.standstill - 1.0  # noqa: SLF001 - fixes keep coming: it lasts its full length
     assert pilot._calibration_standstill(0.2 + p.standstill - 0.01)  # noqa: SLF001
     over = 0.2 + p.standstill + 0.01  # the standstill is bounded
