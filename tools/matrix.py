@@ -22,7 +22,10 @@ true) camera. Measured against the simulator's truth:
   at mid-height: what the carve's intersection of silhouettes suffers from;
 * the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
   the station's final decision, and
-  whether the robot is at rest when the station has exited.
+  whether the robot is at rest when the station has exited;
+* the focal error the mission ended with: max over both axes of |s - s_true|, s the focal scale
+  error of the last self-calibration estimate applied (/agent/self_calibration, 0 when none was),
+  s_true the world's (its true over the configured focal length, less one).
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
                            [--doc docs/benchmarks.md] [--rebuild]
@@ -59,7 +62,7 @@ from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
 from station.config import load_station_config
 from station.mcap_log import read_log
-from station.topics import DECISION, KEYFRAME, POSE
+from station.topics import DECISION, KEYFRAME, POSE, SELF_CALIBRATION
 from tools.bench import BEGIN, END, section
 
 POLL = 0.02  # s, truth sampling period for the clearance (<= 2 mm of walking at 0.1 m/s)
@@ -85,6 +88,8 @@ class MissionResult:
     stop_delay: Optional[float]  # s, final decision -> first stop call on the robot
     stopped: bool  # the robot at rest once the station exited
     out: str
+    focal_error: Optional[float] = None  # relative, the camera the mission ended with (module docstring)
+    self_calibrated: bool = False  # a self-calibration estimate was applied
 
 
 class _ClearanceMonitor(threading.Thread):
@@ -171,6 +176,15 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
     return (float(np.median(shifts)), float(np.max(shifts))) if shifts else None
 
 
+def focal_error(log: Path, spec: WorldSpec, resolution: str) -> Tuple[float, bool]:
+    """(max over axes of |s - s_true|, applied): the focal scale error the mission ended with (module docstring)."""
+    true, configured = spec.robot.camera.intrinsics(resolution), load_robot_model().camera.intrinsics(resolution)
+    s_true = np.array([true.fx / configured.fx - 1.0, true.fy / configured.fy - 1.0])
+    applied = [message.json() for message in read_log(log, topics={SELF_CALIBRATION})]
+    s = np.array(applied[-1]["error"][:2]) if applied else np.zeros(2)
+    return float(np.abs(s - s_true).max()), bool(applied)
+
+
 def _final_decision_time(log: Path) -> Optional[float]:
     """Log time (station clock, s since the epoch) of the first decision of the final run of stops."""
     decided = None
@@ -227,26 +241,31 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
-    pose_error, heading_error, keyframe_shift = None, None, None
+    pose_error, heading_error, keyframe_shift, focal = None, None, None, (None, False)
     if (run / "run.mcap").exists():
         poses = [message.json() for message in read_log(run / "run.mcap", topics={POSE})]
         pose_error, heading_error = pose_errors(poses, monitor.trace)
         keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
+        focal = focal_error(run / "run.mcap", spec, resolution)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
-                         stopped, str(out))
+                         stopped, str(out), *focal)
 
 
-def _stored_result(path: Path, spec: WorldSpec) -> MissionResult:
-    """A mission's matrix.json, its radius error taken again from its result.json (module docstring)."""
+def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
+    """A mission's matrix.json, its radius error taken again from its result.json and its focal
+    error from its log (module docstring)."""
     fields = json.loads(path.read_text())
     fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
-    result = path.parent / "run" / "result.json"
-    estimate = json.loads(result.read_text()).get("object") if result.exists() else None
-    return MissionResult(**{**fields, "radius_error": _radius_error(estimate, spec) if estimate else None})
+    run = path.parent / "run"
+    estimate = json.loads((run / "result.json").read_text()).get("object") if (run / "result.json").exists() else None
+    fields["radius_error"] = _radius_error(estimate, spec) if estimate else None
+    if (run / "run.mcap").exists():
+        fields["focal_error"], fields["self_calibrated"] = focal_error(run / "run.mcap", spec, resolution)
+    return MissionResult(**fields)
 
 
 def _radius_error(estimate: dict, spec: WorldSpec) -> float:
@@ -272,10 +291,12 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         radius = [abs(r.radius_error) for r in ok if r.radius_error is not None]
         iou = [r.iou for r in ok if r.iou is not None]
         dur = [r.duration for r in ok if r.duration is not None]
+        focal = [r.focal_error for r in ok if r.focal_error is not None]
         med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
         return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
                 f"{_fmt(max(centre) if centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
-                f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} |")
+                f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
+                f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
 
     objects = sorted({r.world["object"] for r in results})
     lines = [
@@ -283,19 +304,21 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         "against the stand-in (YUV422, latency, drops, clock offset), in a random landmark layout, with a random object, "
         "start pose (1.0-1.2 m, object up to 120 deg off the heading), walking errors, sway and a camera calibration "
         "off by 0.5 % and 1 px. Errors over completed missions; clearance is the least over all missions (true robot "
-        f"origin to the object's outline).{(' ' + machine) if machine else ''}",
+        "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
+        f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
-        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
           f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
-          f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} |" for r in results],
+          f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
+          f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} |" for r in results],
     ]
     if len(done) < len(results):
         lines += ["", "Reasons of the missions that did not complete:", ""]
@@ -327,7 +350,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if args.rebuild:
             stored = args.out / f"seed{seed:03d}" / "matrix.json"
             if stored.exists():
-                results.append(_stored_result(stored, random_world(seed)))
+                results.append(_stored_result(stored, random_world(seed), args.resolution or load_station_config().station.resolution))
             continue
         start = time.monotonic()
         result = run_mission(seed, args.out / f"seed{seed:03d}", args.resolution)
