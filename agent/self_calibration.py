@@ -37,11 +37,12 @@ faster than ``head_still_speed``: the head angles read for a frame are those of 
 stamp, and a stamp a few milliseconds off at the head's speed tilts the fix's camera by a few
 milliradians, which the pitch-held bundle adjustment takes for a vertical focal or principal point
 error (measured in the matrix: two such fixes of eight, 2.3 and 0.8 px off in v, put the vertical
-focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and localizes; when it finds the object at once, it stands at
-the start of ACTIVE for at most ``standstill`` s with the head alternating between the object and,
-``standstill_dwell`` s each (time to get there and settle),
-the ``standstill_views`` head directions predicted from its pose to show a fix to store, most points
-first and ``standstill_view_spacing`` apart in yaw (station/pilot.py), until an estimate is applied,
+focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and
+localizes; when it finds the object at once, it stands at the start of ACTIVE for at most
+``standstill`` s with the head alternating between the object and, ``standstill_dwell`` s each
+(time to get there and settle), the ``standstill_views`` head directions predicted from its pose
+to show a fix to store, most points first and ``standstill_view_spacing`` apart in yaw
+(station/pilot.py), until an estimate is applied,
 or sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
 predicted to show one (a sparse layout rarely shows two markers at once).
 
