@@ -5,9 +5,10 @@ An ArUco marker's outer corners are convex L-corners (a dark square on a light b
 lens, the pixels, the renderer's anti-aliasing), the tip of such a corner is rounded, and
 ``cv2.cornerSubPix`` (every gradient g_p in a window orthogonal to p - q) pulls q into the rounding:
 inward, by a fixed fraction of a pixel. Measured on rendered VGA frames of the wall layout (markers
-of 12-30 px, the renderer's fill exact): -0.23 px along the diagonal, which shrinks a 16 px marker by
-2 % and scales its range or the camera's self-calibrated focal length alike (edge lines: +0.00 px). The straight parts of the edges are not
-biased: with a symmetric blur the intensity across a straight edge rises fastest on the edge itself.
+of 12-30 px, the renderer's fill exact): -0.23 px along the diagonal, which shrinks a 16 px marker
+by 2 % and scales its range or the camera's self-calibrated focal length alike (edge lines:
++0.00 px). The straight parts of the edges are not biased: with a symmetric blur the intensity
+across a straight edge rises fastest on the edge itself.
 
 For each edge k from corner c_k to c_{k+1} (outward unit normal n_k), at samples
 m_j = c_k + t_j (c_{k+1} - c_k), t_j in [a, 1 - a] (a keeps the samples off both corners' rounding),

@@ -150,13 +150,15 @@ class SelfCalibration:
                 and 4 * markers + balls >= self.params.min_points)
 
     def on_head(self, yaw: float, pitch: float, stamp: float) -> None:
-        """A frame's head angles at its capture ``stamp`` (every frame, with a fix or not)."""
-        if self._head is not None and stamp > self._head[0]:
-            speed = max(abs(yaw - self._head[1]), abs(pitch - self._head[2])) / (stamp - self._head[0])
-            if not speed <= self.params.head_still_speed:
+        """A frame's head angles at its capture ``stamp`` (every frame, with a fix or not; an older stamp is ignored)."""
+        last = self._head
+        if last is not None:
+            if not stamp > last[0]:
+                return
+            speed = max(abs(yaw - last[1]), abs(pitch - last[2])) / (stamp - last[0])
+            if not speed <= self.params.head_still_speed:  # NaN angles count as turning
                 self._head_moved = stamp
-        if self._head is None or stamp > self._head[0]:
-            self._head = (stamp, yaw, pitch)
+        self._head = (stamp, yaw, pitch)
 
     @property
     def head_settled(self) -> bool:

@@ -288,7 +288,8 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     cycle = 0.2 + 2 * (dwell + p.standstill_dwell)
     pilot._t_stored = cycle  # noqa: SLF001
     heads = []
-    for t in (cycle + 0.5 * dwell, cycle + dwell + 0.05, cycle + dwell + p.standstill_dwell - 0.05, cycle + dwell + p.standstill_dwell + 0.05):
+    view_end = cycle + dwell + p.standstill_dwell
+    for t in (cycle + 0.5 * dwell, cycle + dwell + 0.05, view_end - 0.05, view_end + 0.05):
         pilot.mission.on_frame(t, object_seen=True, landmark_fix=True, localized=True)
         heads.append(pilot.handle(Tick(t)).decision.head)
     assert heads[1] == heads[2] == views[2 % len(views)] and heads[0] == heads[3] == pilot._object_head()  # noqa: SLF001

@@ -96,10 +96,13 @@ def mission(error: np.ndarray, frames: int, params: SelfCalibrationParams = PARA
             continue
         errors.append((math.hypot(fix.pose[0] - pose[0], fix.pose[1] - pose[1]), calibration.applied is not None))
         t += 1.0
-        hold_head(calibration, t, 0.04 if turning else 0.0)
-        if turning:
+        if turning:  # still at 0.04 rad, then back to 0 in 0.1 s: the fix's frame
+            hold_head(calibration, t, 0.04)
             calibration.on_head(0.0, 0.0, t + 0.1)
-        calibration.add(fix, t + 0.1 if turning else t)
+            calibration.add(fix, t + 0.1)
+        else:
+            hold_head(calibration, t)
+            calibration.add(fix, t)
     return calibration, errors
 
 

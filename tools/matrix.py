@@ -176,11 +176,11 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
     return (float(np.median(shifts)), float(np.max(shifts))) if shifts else None
 
 
-def focal_error(log: Path, spec: WorldSpec, resolution: str) -> Tuple[float, bool]:
-    """(max over axes of |s - s_true|, applied): the focal scale error the mission ended with (module docstring)."""
+def focal_error(applied: List[dict], spec: WorldSpec, resolution: str) -> Tuple[float, bool]:
+    """(max over axes of |s - s_true|, any applied): the focal scale error the mission ended with, from
+    its /agent/self_calibration messages in log order (module docstring)."""
     true, configured = spec.robot.camera.intrinsics(resolution), load_robot_model().camera.intrinsics(resolution)
     s_true = np.array([true.fx / configured.fx - 1.0, true.fy / configured.fy - 1.0])
-    applied = [message.json() for message in read_log(log, topics={SELF_CALIBRATION})]
     s = np.array(applied[-1]["error"][:2]) if applied else np.zeros(2)
     return float(np.abs(s - s_true).max()), bool(applied)
 
@@ -243,16 +243,17 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
     pose_error, heading_error, keyframe_shift, focal = None, None, None, (None, False)
     if (run / "run.mcap").exists():
-        poses = [message.json() for message in read_log(run / "run.mcap", topics={POSE})]
+        messages = list(read_log(run / "run.mcap", topics={POSE, SELF_CALIBRATION}))
+        poses = [m.json() for m in messages if m.topic == POSE]
         pose_error, heading_error = pose_errors(poses, monitor.trace)
         keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
-        focal = focal_error(run / "run.mcap", spec, resolution)
+        focal = focal_error([m.json() for m in messages if m.topic == SELF_CALIBRATION], spec, resolution)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
-                         stopped, str(out), *focal)
+                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1])
 
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
@@ -264,7 +265,8 @@ def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResul
     estimate = json.loads((run / "result.json").read_text()).get("object") if (run / "result.json").exists() else None
     fields["radius_error"] = _radius_error(estimate, spec) if estimate else None
     if (run / "run.mcap").exists():
-        fields["focal_error"], fields["self_calibrated"] = focal_error(run / "run.mcap", spec, resolution)
+        applied = [m.json() for m in read_log(run / "run.mcap", topics={SELF_CALIBRATION})]
+        fields["focal_error"], fields["self_calibrated"] = focal_error(applied, spec, resolution)
     return MissionResult(**fields)
 
 
@@ -345,21 +347,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
     if args.count < 1:
         parser.error("--count must be at least 1")
+    resolution = args.resolution or load_station_config().station.resolution
     results = []
     for seed in range(args.first_seed, args.first_seed + args.count):
         if args.rebuild:
             stored = args.out / f"seed{seed:03d}" / "matrix.json"
             if stored.exists():
-                results.append(_stored_result(stored, random_world(seed), args.resolution or load_station_config().station.resolution))
+                results.append(_stored_result(stored, random_world(seed), resolution))
             continue
         start = time.monotonic()
-        result = run_mission(seed, args.out / f"seed{seed:03d}", args.resolution)
+        result = run_mission(seed, args.out / f"seed{seed:03d}", resolution)
         results.append(result)
         (args.out / f"seed{seed:03d}" / "matrix.json").write_text(json.dumps(dataclasses.asdict(result), indent=2) + "\n")
         print(f"matrix: seed {seed} {result.world['layout']}/{result.world['object']}: {result.outcome}, centre "
               f"{_fmt(result.centre_error, 1000)} mm, IoU {_fmt(result.iou, 1, 3)}, clearance {_fmt(result.min_clearance, 1, 3)} m "
               f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
-    resolution = args.resolution or load_station_config().station.resolution
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
     write_section(args.doc, table(results, resolution, machine))
