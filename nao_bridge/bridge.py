@@ -612,7 +612,7 @@ class Bridge:
                 head_pitch=robot.head_pitch,
                 walking=bool(robot.walking),
                 fallen=self._fallen,
-                battery=float(robot.battery),
+                battery=None if robot.battery is None else float(robot.battery),
                 cmd_age=None if self._last_arrival is None else now - self._last_arrival,
                 watchdog="shutdown" if self._shutdown else self._watchdog,
                 rejected=dict(self.rejected),

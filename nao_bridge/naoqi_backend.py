@@ -18,6 +18,13 @@ Services and calls (NAOqi 2.x API):
 * ALAutonomousLife ``setState("disabled")`` and ALRobotPosture ``goToPosture("StandInit", speed)``
   at start, ``rest`` on close, each configurable.
 
+Only ALMotion, ALVideoDevice and ALMemory's ``getData``/``insertData`` are required. A NAOqi without
+the rest (a virtual robot, a stand-in) runs with one warning each, naming what is lost: no
+ALAutonomousLife or ALRobotPosture, the start skips that step; no ``ALMemory.subscriber``, the fall
+keys are polled with ``getData`` at every state read; a key ``getData`` does not know (an event never
+raised, a robot without the battery key) reads as not fallen, or as an unknown charge (``None``).
+Images in RGB (kRGBColorSpace, 11) are decoded as well as the two colour spaces the bridge asks for.
+
 Clocks. Image stamps are the robot's clock; the bridge's is ``time.time()``. The offset between
 them is measured two ways:
 
@@ -57,7 +64,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Counter, Deque, List, Literal, Optional, Sequence, Set, Tuple, Union
+from typing import Any, Callable, Counter, Deque, List, Literal, Optional, Sequence, Set, Tuple, Union
 
 import cv2
 import numpy as np
@@ -75,7 +82,9 @@ from nao_core.naoqi_api import (
     FRAME_ROBOT,
     HEAD_JOINTS,
     RESOLUTION_IDS,
+    RGB_COLOR_SPACE,
     TOP_CAMERA,
+    error_line,
 )
 from nao_core.records import CameraFrame, RobotState
 from nao_core.robot_model import RobotModel, nao_to_optical
@@ -105,18 +114,21 @@ class NaoqiParams:
     client_name: str
 
 
+# colour space id -> (bytes per pixel, OpenCV conversion to BGR or None)
+DECODERS = {COLOR_SPACE_IDS["bgr"]: (3, None), COLOR_SPACE_IDS["yuv422"]: (2, cv2.COLOR_YUV2BGR_YUYV),
+            RGB_COLOR_SPACE: (3, cv2.COLOR_RGB2BGR)}
+
+
 def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes, bytearray, str]) -> np.ndarray:
-    """A NAOqi image buffer (bytes or latin-1 text) in BGR or packed YUV422 -> H x W x 3 BGR."""
+    """A NAOqi image buffer (bytes or latin-1 text) in BGR, RGB or packed YUV422 -> H x W x 3 BGR."""
     raw = buffer.encode("latin-1") if isinstance(buffer, str) else bytes(buffer)
-    layers = {COLOR_SPACE_IDS["bgr"]: 3, COLOR_SPACE_IDS["yuv422"]: 2}.get(color_space)
-    if layers is None:
-        raise ValueError(f"image colour space {color_space}: expected one of {sorted(COLOR_SPACE_IDS.values())}")
+    if color_space not in DECODERS:
+        raise ValueError(f"image colour space {color_space}: expected one of {sorted(DECODERS)}")
+    layers, conversion = DECODERS[color_space]
     if len(raw) != width * height * layers:
         raise ValueError(f"image buffer of {len(raw)} bytes, expected {width}x{height}x{layers}")
     pixels = np.frombuffer(raw, np.uint8).reshape(height, width, layers)
-    if layers == 3:
-        return pixels.copy()
-    return cv2.cvtColor(pixels, cv2.COLOR_YUV2BGR_YUYV)
+    return pixels.copy() if conversion is None else cv2.cvtColor(pixels, conversion)
 
 
 class ClockOffset:
@@ -172,6 +184,8 @@ class NaoqiBackend(RobotBackend):
         self._session: Optional[Any] = None
         self._camera: Optional[str] = None
         self._fall_links: List[tuple] = []
+        self._polled_fall_keys: List[str] = []  # fall keys without an ALMemory subscriber: read at every state
+        self._warned: Set[str] = set()
         self._fallen = threading.Event()
         self._clock = ClockOffset(params.clock_window, params.camera_latency_min)
         self._probe = ClockProbe(params.clock_probe_window)
@@ -201,16 +215,22 @@ class NaoqiBackend(RobotBackend):
         self.video = session.service("ALVideoDevice")
         self.memory = session.service("ALMemory")
         if self.params.disable_autonomous_life:
-            session.service("ALAutonomousLife").setState("disabled")
+            self._optional("ALAutonomousLife", lambda: session.service("ALAutonomousLife").setState("disabled"),
+                           "autonomous life stays as it is and may move the head or the body during the mission")
         self.motion.wakeUp()
         if self.params.stand_init_at_start:
-            session.service("ALRobotPosture").goToPosture("StandInit", self.params.stand_init_speed)
+            self._optional("ALRobotPosture",
+                           lambda: session.service("ALRobotPosture").goToPosture("StandInit", self.params.stand_init_speed),
+                           "the robot walks from the posture wakeUp left it in")
         for key in FALL_KEYS:
-            subscriber = self.memory.subscriber(key)
-            link = subscriber.signal.connect(self._on_fall_event)
-            self._fall_links.append((subscriber, link))
-            if self.memory.getData(key):
-                self._fallen.set()
+            try:
+                subscriber = self.memory.subscriber(key)
+                self._fall_links.append((subscriber, subscriber.signal.connect(self._on_fall_event)))
+            except Exception as exc:  # noqa: BLE001 - an ALMemory without subscriber: poll the key instead
+                self._polled_fall_keys.append(key)
+                log.warning("NAOqi ALMemory.subscriber(%r) failed (%s): the key is polled at every state read", key,
+                            error_line(exc))
+            self._read_fall_key(key)
         self._sample_kinematics()  # the first sample precedes every image; a failure here fails the start
         self._sampler = threading.Thread(target=self._sample_loop, name="naoqi-kinematics", daemon=True)
         self._sampler.start()
@@ -223,6 +243,27 @@ class NaoqiBackend(RobotBackend):
             int(round(self.fps)),
         )
         log.info("NAOqi at %s: camera %s %s at %g fps", self.url, self.resolution, self.params.color_space, self.fps)
+
+    def _optional(self, service: str, step: Callable[[], Any], lost: str) -> None:
+        """Run a start step that needs a service a bare NAOqi may lack; without it, warn what is lost."""
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - a virtual robot or a stand-in without the service
+            log.warning("NAOqi %s unavailable (%s): %s", service, error_line(exc), lost)
+
+    def _read_memory(self, key: str) -> Any:
+        """``ALMemory.getData(key)``, or None when the key is unknown (warned once per key)."""
+        try:
+            return self.memory.getData(key)
+        except RuntimeError as exc:
+            if key not in self._warned:
+                self._warned.add(key)
+                log.warning("NAOqi ALMemory has no %r yet (%s): read as unknown", key, error_line(exc))
+            return None
+
+    def _read_fall_key(self, key: str) -> None:
+        if self._read_memory(key):
+            self._on_fall_event(True)
 
     def _sample_kinematics(self) -> None:
         """One sample of head angles, camera transform and odometry, stamped mid-way through the reads."""
@@ -382,6 +423,10 @@ class NaoqiBackend(RobotBackend):
     def read_state(self) -> RobotState:
         odom = self.motion.getRobotPosition(self.params.use_sensors)
         yaw, pitch = self.motion.getAngles(HEAD_JOINTS, self.params.use_sensors)
+        for key in self._polled_fall_keys:
+            self._read_fall_key(key)
+        charge = self._read_memory(BATTERY_KEY)
+        battery = float(charge) if isinstance(charge, (int, float)) and math.isfinite(charge) else None
         return RobotState(
             stamp=time.time(),
             odom=(float(odom[0]), float(odom[1]), float(odom[2])),
@@ -389,7 +434,7 @@ class NaoqiBackend(RobotBackend):
             head_pitch=float(pitch),
             walking=bool(self.motion.moveIsActive()),
             fallen=self._fallen.is_set(),
-            battery=min(max(float(self.memory.getData(BATTERY_KEY)), 0.0), 1.0),
+            battery=None if battery is None else min(max(battery, 0.0), 1.0),
         )
 
     def close(self) -> None:

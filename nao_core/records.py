@@ -7,7 +7,7 @@ Times are the bridge machine's clock (seconds); camera poses are in the optical 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -32,4 +32,4 @@ class RobotState:
     head_pitch: float
     walking: bool
     fallen: bool
-    battery: float  # charge fraction in [0, 1]
+    battery: Optional[float]  # charge fraction in [0, 1], None when the robot does not report it

@@ -13,9 +13,12 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   sway scaled by U(``sway_scale``);
 * the camera: the simulator's true intrinsics differ from the configured (what the station uses) by
   ``focal_error`` (relative, random sign per axis) and ``principal_error`` px (random sign per axis);
-* the NAOqi stand-in's frames: latency range, drop rate and clock offset drawn in their ranges.
+* the NAOqi stand-in's frames: latency range, drop rate and clock offset drawn in their ranges;
+* the NAOqi itself: with probability ``bare_naoqi`` the stand-in is bare (``StandIn(bare=True)``: no
+  posture or autonomous-life service, no ALMemory subscriber, timestamps or battery key, images in
+  RGB), drawn last so that the other draws of a seed do not depend on it.
 
-The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space).
+The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ class Randomizer:
     latency: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # s, range of the latency range's ends
     drop_rate: Tuple[float, float] = field(metadata=bounds(0.0, 0.9))
     clock_offset: Tuple[float, float] = field(metadata=bounds(-1e9, 1e9))  # s
+    bare_naoqi: float = field(metadata=bounds(0.0, 1.0))  # share of worlds served by a bare NAOqi stand-in
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
@@ -77,6 +81,7 @@ class WorldSpec:
     object_name: str
     robot: RobotModel  # the simulator's true camera; the station keeps the configured one
     start: Pose
+    bare_naoqi: bool = False  # served by StandIn(bare=True)
 
     def summary(self) -> Dict[str, object]:
         dyn, noise = self.config.dynamics, self.config.noise
@@ -84,7 +89,8 @@ class WorldSpec:
                 "start_distance": round(math.dist(self.start[:2], self.scenario.position), 3),
                 "start_bearing_deg": round(math.degrees(_bearing(self.start, self.scenario.position)), 1),
                 "speed_scale_sigma": round(dyn.speed_scale_sigma[0], 3), "sway_roll": round(dyn.sway.roll, 3),
-                "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency]}
+                "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency],
+                "bare_naoqi": self.bare_naoqi}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -131,8 +137,9 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     camera = robot.camera
     resolutions = {k: _intrinsics(v, rng, r.focal_error, r.principal_error) for k, v in camera.resolutions.items()}
     true_robot = dataclasses.replace(robot, camera=dataclasses.replace(camera, resolutions=resolutions))
+    bare = bool(rng.uniform() < r.bare_naoqi)  # last: the draws above do not depend on it
     return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
-                     true_robot, (x, y, heading))
+                     true_robot, (x, y, heading), bare)
 
 
 class RandomWorld(SimWorld):

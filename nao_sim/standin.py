@@ -20,6 +20,12 @@ YUYV (kYUV422 = 9, 2 bytes a pixel), as requested. Latency, drop rate and clock 
 stamps every ``insertData`` on the same robot clock and returns it with ``getTimestamp`` (the
 bridge's clock probe, docs/frames.md).
 
+``StandIn(world, bare=True)`` is a NAOqi with the least a robot API may have, to hold the bridge to
+what it requires (docs/bridge.md): ALMotion, ALVideoDevice and an ALMemory of ``insertData`` and
+``getData`` alone, which knows no key before it is written (the fall events before a fall, the
+battery); no ALRobotPosture, no ALAutonomousLife, no ``subscriber``, no ``getTimestamp``, and the
+camera answers in RGB (kRGBColorSpace, 11) whatever colour space was asked.
+
     python -m nao_sim.standin --scenario can      # serve until Ctrl-C, print the URL
 """
 
@@ -43,6 +49,7 @@ from nao_core.naoqi_api import (
     FALL_KEYS,
     HEAD_JOINTS,
     RESOLUTION_IDS,
+    RGB_COLOR_SPACE,
     TOP_CAMERA,
 )
 from nao_core.robot_model import load_robot_model
@@ -155,10 +162,12 @@ class CameraDelivery(NamedTuple):
 
 
 class ALVideoDevice:
-    def __init__(self, world: SimWorld, record: _Recorder, delivery: CameraDelivery):
+    def __init__(self, world: SimWorld, record: _Recorder, delivery: CameraDelivery, answer_color_space: Optional[int] = None):
+        """``answer_color_space``: serve every image in it, whatever the subscription asked (None: as asked)."""
         self._world = world
         self._record = record
         self._delivery = delivery
+        self._answer_color_space = answer_color_space
         self._subscribers: Dict[str, Dict[str, Any]] = {}
         self._lock = threading.Lock()
         self.captures: List[Tuple[float, float]] = []  # (robot stamp, world capture time) of every image served
@@ -175,7 +184,7 @@ class ALVideoDevice:
         with self._lock:
             handle = f"{name}_{len(self._subscribers)}"
             self._subscribers[handle] = {
-                "color_space": color_space, "period": 1.0 / fps, "start": time.time(), "index": -1, "image": None,
+                "color_space": color_space if self._answer_color_space is None else self._answer_color_space, "period": 1.0 / fps, "start": time.time(), "index": -1, "image": None,
                 "pending": {},  # frame index -> (image, (robot stamp, capture)) captured (rendered), not yet due
             }
         return handle
@@ -212,7 +221,8 @@ class ALVideoDevice:
     def _image(self, capture: float, color_space: int) -> Tuple[list, Tuple[float, float]]:
         """The NAOqi image of a capture at world time ``capture``, and its (robot stamp, capture stamp)."""
         frame = self._world.render(at=capture)
-        pixels = frame.image if color_space == COLOR_SPACE_IDS["bgr"] else cv2.cvtColor(frame.image, cv2.COLOR_BGR2YUV_YUYV)
+        conversion = {COLOR_SPACE_IDS["yuv422"]: cv2.COLOR_BGR2YUV_YUYV, RGB_COLOR_SPACE: cv2.COLOR_BGR2RGB}.get(color_space)
+        pixels = frame.image if conversion is None else cv2.cvtColor(frame.image, conversion)
         height, width, layers = pixels.shape
         robot_stamp = frame.stamp + self._delivery.clock_offset
         seconds = math.floor(robot_stamp)
@@ -238,21 +248,43 @@ class _MemorySubscriber:
         self.signal = qi.Signal("(m)")
 
 
-class ALMemory:
-    def __init__(self, world: SimWorld, record: _Recorder, clock_offset: float):
-        self._world = world
+class BareALMemory:
+    """ALMemory's ``insertData`` and ``getData``: a key is known once written (an event once raised)."""
+
+    def __init__(self, record: _Recorder, clock_offset: float):
         self._record = record
         self._clock_offset = clock_offset
-        self._subscribers: Dict[str, _MemorySubscriber] = {}
-        self._data: Dict[str, Any] = {}  # written by insertData
-        self._stamps: Dict[str, float] = {}  # robot clock time of each insertData
+        self._data: Dict[str, Any] = {}  # written by insertData or a raised event
+        self._stamps: Dict[str, float] = {}  # robot clock time of each write
         self._lock = threading.Lock()
 
     def insertData(self, key: str, value: Any) -> None:
         self._record("ALMemory.insertData", key, value)
+        self._write(key, value)
+
+    def getData(self, key: str) -> Any:
+        self._record("ALMemory.getData", key)
+        with self._lock:
+            if key in self._data:
+                return self._data[key]
+        raise RuntimeError(f"ALMemory::getData: key {key!r} not found")
+
+    def _write(self, key: str, value: Any) -> None:
         with self._lock:
             self._data[key] = value
             self._stamps[key] = time.time() + self._clock_offset
+
+    def _raise_event(self, key: str, value: Any) -> None:
+        self._write(key, value)  # NAOqi's raiseEvent stores the value as well
+
+
+class ALMemory(BareALMemory):
+    """ALMemory with event subscribers, write timestamps and the robot's fall and battery keys."""
+
+    def __init__(self, world: SimWorld, record: _Recorder, clock_offset: float):
+        super().__init__(record, clock_offset)
+        self._world = world
+        self._subscribers: Dict[str, _MemorySubscriber] = {}
 
     def getTimestamp(self, key: str) -> list:
         """[value, seconds, microseconds] of the last write, on the robot's clock (as the images)."""
@@ -264,15 +296,13 @@ class ALMemory:
             return [self._data[key], int(seconds), int(fraction * 1e6)]
 
     def getData(self, key: str) -> Any:
-        self._record("ALMemory.getData", key)
-        with self._lock:
-            if key in self._data:
-                return self._data[key]
         if key in FALL_KEYS:
+            self._record("ALMemory.getData", key)
             return bool(self._world.is_fallen())
         if key == BATTERY_KEY:
+            self._record("ALMemory.getData", key)
             return float(self._world.battery())
-        raise RuntimeError(f"ALMemory::getData: key {key!r} not found")
+        return super().getData(key)
 
     def subscriber(self, key: str) -> _MemorySubscriber:
         self._record("ALMemory.subscriber", key)
@@ -280,6 +310,7 @@ class ALMemory:
             return self._subscribers.setdefault(key, _MemorySubscriber())
 
     def _raise_event(self, key: str, value: Any) -> None:
+        super()._raise_event(key, value)
         with self._lock:
             subscriber = self._subscribers.get(key)
         if subscriber is not None:
@@ -313,8 +344,10 @@ class StandIn:
         listen: str = "tcp://127.0.0.1:0",
         latency: Optional[Tuple[float, float]] = None,
         drop_rate: Optional[float] = None,
+        bare: bool = False,
     ):
-        """Camera delivery defaults to ``world.config.noise``; the seed is the world's."""
+        """Camera delivery defaults to ``world.config.noise``; the seed is the world's. ``bare``: the least
+        NAOqi (module docstring)."""
         noise = world.config.noise
         latency = noise.latency if latency is None else (float(latency[0]), float(latency[1]))
         drop_rate = noise.drop_rate if drop_rate is None else float(drop_rate)
@@ -328,15 +361,12 @@ class StandIn:
         self.world = world
         self.listen = listen
         self._record = _Recorder()
-        self.memory = ALMemory(world, self._record, self.delivery.clock_offset)
-        self.video = ALVideoDevice(world, self._record, self.delivery)
-        self.services = {
-            "ALMotion": ALMotion(world, self._record),
-            "ALVideoDevice": self.video,
-            "ALMemory": self.memory,
-            "ALRobotPosture": ALRobotPosture(self._record),
-            "ALAutonomousLife": ALAutonomousLife(self._record),
-        }
+        self.memory = (BareALMemory(self._record, self.delivery.clock_offset) if bare
+                       else ALMemory(world, self._record, self.delivery.clock_offset))
+        self.video = ALVideoDevice(world, self._record, self.delivery, RGB_COLOR_SPACE if bare else None)
+        self.services = {"ALMotion": ALMotion(world, self._record), "ALVideoDevice": self.video, "ALMemory": self.memory}
+        if not bare:
+            self.services.update(ALRobotPosture=ALRobotPosture(self._record), ALAutonomousLife=ALAutonomousLife(self._record))
         self._session: Optional[Any] = None
 
     @property
@@ -387,11 +417,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--latency", type=float, nargs=2, metavar=("LOW", "HIGH"), help="s, capture to delivery")
     parser.add_argument("--drop-rate", type=float, help="share of frames never served")
     parser.add_argument("--clock-offset", type=float, help="s, robot clock minus bridge clock")
+    parser.add_argument("--bare", action="store_true", help="the least NAOqi: no posture, autonomous life, "
+                        "memory subscribers or timestamps, no battery key, RGB images")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     world = SimWorld(args.scenario, load_robot_model(), resolution=args.resolution, seed=args.seed)
     try:
-        standin = StandIn(world, args.clock_offset, args.listen, args.latency, args.drop_rate)
+        standin = StandIn(world, args.clock_offset, args.listen, args.latency, args.drop_rate, args.bare)
     except ValueError as exc:
         parser.error(str(exc))
     with standin:

@@ -29,6 +29,7 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.localization import RobotLocalizer
+from nao_core.naoqi_api import error_line
 from nao_core.protocol import ProtocolError, State, decode, decode_frame
 from station.config import StationConfig, load_station_config
 from station.launch import BridgeFailed
@@ -56,12 +57,12 @@ def naoqi_check(host: str) -> Check:
         session = qi.Session()
         session.connect(url)
     except Exception as exc:  # noqa: BLE001 - libqi raises RuntimeError for every failure
-        return Check("NAOqi", False, f"{url}: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}",
+        return Check("NAOqi", False, f"{url}: {error_line(exc)}",
                      "is the robot on (chest button), on this network (press the chest button: it says its IP), port 9559 open?")
     try:
         version = f"NAOqi {session.service('ALSystem').systemVersion()}"
     except Exception as exc:  # noqa: BLE001 - a NAOqi without ALSystem (a stand-in): reachable all the same
-        version = f"version unknown ({str(exc).strip().splitlines()[0] if str(exc).strip() else 'no ALSystem'})"
+        version = f"version unknown ({error_line(exc)})"
     finally:
         session.close()
     return Check("NAOqi", True, f"{url}, {version}")
@@ -104,7 +105,10 @@ def robot_checks(config: StationConfig, info, frames: list, states: List[State],
                             "synchronize the clocks (NTP on the robot and here: `date` on both should agree)"))
     if states:
         s = states[-1]
-        checks.append(Check("battery", s.battery >= config.station.doctor_min_battery, f"{s.battery:.0%}", "charge the robot"))
+        if s.battery is None:  # a robot without the battery key (a virtual robot, a stand-in): nothing to check
+            checks.append(Check("battery", True, "not reported by the robot", ""))
+        else:
+            checks.append(Check("battery", s.battery >= config.station.doctor_min_battery, f"{s.battery:.0%}", "charge the robot"))
         checks.append(Check("fallen", not s.fallen, "lying" if s.fallen else "standing",
                             "stand the robot up and restart the bridge (a fall is latched)"))
         checks.append(Check("watchdog", s.watchdog not in ("stop_failed", "no_robot_watchdog"), s.watchdog,

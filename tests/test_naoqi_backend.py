@@ -29,7 +29,7 @@ from nao_bridge.naoqi_backend import (
 )
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
-from nao_core.naoqi_api import CLOCK_PROBE_KEY
+from nao_core.naoqi_api import CLOCK_PROBE_KEY, RGB_COLOR_SPACE
 from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import CameraDelivery, StandIn
@@ -55,6 +55,7 @@ def test_image_buffer_as_bytes_bytearray_or_latin1_text():
     raw = image.tobytes()
     for buffer in (raw, bytearray(raw), raw.decode("latin-1")):
         assert np.array_equal(image_to_bgr(8, 6, BGR, buffer), image)
+    assert np.array_equal(image_to_bgr(8, 6, RGB_COLOR_SPACE, image[:, :, ::-1].tobytes()), image)
 
 
 def test_yuv422_round_trip_keeps_colours():
@@ -67,7 +68,7 @@ def test_yuv422_round_trip_keeps_colours():
 
 @pytest.mark.parametrize(
     "width, height, space, size, message",
-    [(8, 6, BGR, 10, "expected 8x6x3"), (8, 6, 11, 144, "colour space 11"), (8, 6, YUV422, 144, "expected 8x6x2")],
+    [(8, 6, BGR, 10, "expected 8x6x3"), (8, 6, 10, 144, "colour space 10"), (8, 6, YUV422, 144, "expected 8x6x2")],
 )
 def test_bad_image_buffers_are_named(width, height, space, size, message):
     with pytest.raises(ValueError, match=message):
@@ -387,6 +388,34 @@ def test_walk_head_state_and_fall_signal(standin):
     backend.stop_walking()
     assert standin.calls_to("ALMotion.stopMove")
     backend.close()
+
+
+def test_a_bare_naoqi_runs_the_backend_and_each_thing_it_lacks_is_named(caplog):
+    """Only ALMotion, ALVideoDevice and an ALMemory of getData/insertData, images in RGB (StandIn bare):
+    the backend starts, decodes the images, reads the fall keys by polling, reports the battery as
+    unknown, and warns once for each missing part, naming it."""
+    world = SimWorld("can", MODEL, resolution="qvga", seed=4)
+    renders = []
+    render = world.render
+    world.render = lambda at=None: renders.append(render(at)) or renders[-1]
+    with StandIn(world, bare=True) as standin, caplog.at_level("WARNING", logger="nao_bridge.naoqi_backend"):
+        backend = backend_for(standin)
+        backend.start()
+        grabs = [(backend.grab_frame(2.0), standin.video.captures[-1][1]) for _ in range(3)]  # served: the last capture
+        standing = backend.read_state()
+        standin.fall()
+        fallen = backend.read_state()
+        backend.close()
+    warnings = [r.getMessage() for r in caplog.records]
+    for lost in ("ALAutonomousLife", "ALRobotPosture", "subscriber('robotHasFallen')",
+                 "subscriber('ALMotion/RobotIsFalling')", "Device/SubDeviceList/Battery", "clock probe unavailable"):
+        assert sum(lost in w for w in warnings) == 1, lost  # once each, not at every state read
+    assert standin.calls_to("ALMotion.wakeUp") and standin.calls_to("ALVideoDevice.unsubscribe")
+    for frame, stamp in grabs:
+        truth = next(r for r in renders if r.stamp == stamp).image
+        assert np.array_equal(frame.image, truth)  # RGB decoded to BGR, losslessly
+    assert standing.battery is None and not standing.fallen
+    assert fallen.fallen  # robotHasFallen polled with getData once the event was raised
 
 
 def test_unreachable_robot_is_a_connection_error_naming_the_url():

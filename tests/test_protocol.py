@@ -73,6 +73,15 @@ def _samples():
     ]
 
 
+def test_a_state_without_battery_charge_round_trips_and_a_charge_out_of_range_is_refused():
+    """A robot that reports no charge (nao_bridge.naoqi_backend) sends ``battery: null``."""
+    state = next(m for m in samples() if isinstance(m, State))
+    unknown = dataclasses.replace(state, battery=None)
+    assert decode(encode(unknown), State) == unknown
+    with pytest.raises(ProtocolError, match="battery"):
+        decode(encode(state).replace(b'"battery":0.8', b'"battery":1.5'), State)
+
+
 @pytest.mark.parametrize("message", samples(), ids=lambda m: m.TYPE)
 def test_round_trip_is_exact_and_type_checked(message):
     payload = encode(message)

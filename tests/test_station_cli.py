@@ -175,8 +175,11 @@ def test_capture_from_the_simulated_nao(tmp_path):
     assert len(shots) == 2 and all(cv2.imread(str(p)).shape == (intr.height, intr.width, 3) for p in shots)
 
 
-def test_doctor_through_naoqi_on_the_standin(tmp_path):
-    """`doctor --naoqi`: the libqi check, then a bridge started here against the NAOqi stand-in."""
+@pytest.mark.parametrize("bare", [False, True], ids=["full", "bare"])
+def test_doctor_through_naoqi_on_the_standin(tmp_path, bare):
+    """`doctor --naoqi`: the libqi check, then a bridge started here against the NAOqi stand-in; a bare
+    one (no posture, autonomous life, ALMemory subscriber, timestamps or battery key, RGB images) passes
+    the same checks, its battery "not reported"."""
     import qi
 
     from station.launch import free_port
@@ -185,8 +188,8 @@ def test_doctor_through_naoqi_on_the_standin(tmp_path):
 
     url = f"tcp://127.0.0.1:{free_port()}"
     resolution = load_station_config([]).station.resolution  # the camera mode the doctor's bridge asks for
-    standin = subprocess.Popen([sys.executable, "-m", "nao_sim.standin", "--listen", url, "--resolution", resolution],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    standin = subprocess.Popen([sys.executable, "-m", "nao_sim.standin", "--listen", url, "--resolution", resolution,
+                                *(["--bare"] if bare else [])], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         for _ in range(600):  # readiness: until a libqi session connects
             try:
@@ -205,7 +208,9 @@ def test_doctor_through_naoqi_on_the_standin(tmp_path):
     lines = [line for line in result.stdout.splitlines() if line[:4] in ("PASS", "FAIL")]  # libqi may add its own
     assert lines[0].startswith(f"PASS  NAOqi: {url}"), result.stdout + result.stderr
     assert lines[1].startswith("PASS  bridge: naoqi bridge"), result.stdout + result.stderr
-    assert any(line.startswith("PASS  camera rate") for line in lines), result.stdout
+    for check in ("camera rate", "camera frame", "clock offset", "battery", "fallen", "watchdog"):
+        assert any(line.startswith(f"PASS  {check}") for line in lines), result.stdout
+    assert ("PASS  battery: not reported by the robot" in lines) == bare, result.stdout
 
 
 def test_bridge_killed_mid_mission_ends_it_with_exit_2(tmp_path):

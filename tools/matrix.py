@@ -219,7 +219,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     command = [sys.executable, "-m", "station.cli", "start", "--out", str(out / "run"), "--config", str(override)]
     if max_duration is not None:
         command += ["--max-duration", str(max_duration)]
-    with StandIn(world) as standin, open(out / "station.err", "wb") as err:
+    with StandIn(world, bare=spec.bare_naoqi) as standin, open(out / "station.err", "wb") as err:
         monitor.start()
         proc = subprocess.Popen([*command, "--naoqi", standin.url], stdout=subprocess.DEVNULL, stderr=err)
         try:

@@ -153,7 +153,7 @@ class State:
     head_pitch: float
     walking: bool
     fallen: bool  # latched: walk commands are refused once fallen
-    battery: float = field(metadata=bounds(0.0, 1.0))
+    battery: Optional[float] = field(metadata=bounds(0.0, 1.0))  # charge fraction, None when the robot gives none
     cmd_age: Optional[float] = field(metadata=bounds(0.0))  # s since the last accepted walk command
     watchdog: Watchdog  # why the robot is (not) walking
     rejected: Dict[str, int] = field(metadata=bounds(0))  # malformed messages per ProtocolError reason
