@@ -775,8 +775,8 @@ class RobotLocalizer:
         if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:  # the roll prior was wrong: widen it to |delta|
             H = H.copy()
             H[3, 3] += (self.params.pixel_sigma / p[3]) ** 2 - (self.params.pixel_sigma / self._roll_sigma) ** 2
-        # per-axis residual variance with 3 degrees of freedom used (delta is held by its prior)
-        residual_var = 2.0 * len(points) * rms**2 / max(1, 2 * len(points) - 3)
+        # per-axis residual variance: sum ||r_i||^2 = N rms^2 over 2N residuals, 3 degrees of freedom used
+        residual_var = len(points) * rms**2 / max(1, 2 * len(points) - 3)
         covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")

@@ -674,3 +674,28 @@ def test_a_standing_robots_odometry_jitter_keeps_the_still_roll_prior(params, ro
     assert localizer._moving  # noqa: SLF001
     localizer.on_odometry(walked, 0.04 + params.still_settle)
     assert not localizer._moving  # noqa: SLF001
+
+
+def test_fix_covariance_follows_corner_noise_above_its_floor(params, robot):
+    """Synthetic corners of four markers 1.2-1.6 m away with 0.6 px noise (four times ``pixel_sigma``:
+    the residuals set the scale), T_BC exact and the torso tilt held (priors of 1e-6 rad): the fixes'
+    NEES averages 3 nu / (nu - 2) = 3.2 (the pose error against a covariance whose scale is estimated
+    from nu = 2N - 3 = 29 residual degrees of freedom; agent/localization.py, R_fix). Twice the residual
+    variance, the slip this guards, averaged 1.6."""
+    held = 1e-6
+    camera = CameraModel.from_fov(640, 480, math.radians(57.0))  # no distortion: the pixels are the model's
+    T_BC = robot.camera_in_robot(0.0, 0.1)
+    model = PlanarModel(camera, T_BC)
+    corners = np.array([[0.0, -0.065, -0.065], [0.0, 0.065, -0.065], [0.0, 0.065, 0.065], [0.0, -0.065, 0.065]])
+    X = np.concatenate([corners + (x, y, z) for x, y, z in [(1.6, -0.5, 0.3), (1.4, 0.0, 0.6), (1.6, 0.5, 0.4), (1.2, 0.3, 0.25)]])
+    localizer = RobotLocalizer(dataclasses.replace(params, pitch_sigma=held), LandmarkMap(()), camera)
+    rng = np.random.default_rng(3)
+    nees = []
+    for _ in range(300):
+        truth = rng.normal(0.0, 0.05, 3)
+        pixels = model.project(truth, X)[0] + rng.normal(0.0, 0.6, (len(X), 2))
+        fix = localizer.fit(X, pixels, T_BC, roll_sigma=held)
+        assert fix is not None, localizer.no_fix_reason
+        e = np.array([fix.pose[0] - truth[0], fix.pose[1] - truth[1], wrap_angle(fix.pose[2] - truth[2])])
+        nees.append(e @ np.linalg.solve(fix.covariance, e))
+    assert 2.8 < np.mean(nees) < 3.6
