@@ -16,7 +16,9 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
 * the NAOqi stand-in's frames: latency range, drop rate and clock offset drawn in their ranges;
 * the NAOqi itself: with probability ``bare_naoqi`` the stand-in is bare (``StandIn(bare=True)``: no
   posture or autonomous-life service, no ALMemory subscriber, timestamps or battery key, images in
-  RGB), drawn last so that the other draws of a seed do not depend on it.
+  RGB), drawn after the above so that their draws for a seed do not depend on it;
+* the sensor, drawn last: pixel noise, optical blur and the room's brightness (exposure) in
+  ``pixel_sigma``, ``blur_sigma`` and ``exposure``.
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -59,6 +61,9 @@ class Randomizer:
     drop_rate: Tuple[float, float] = field(metadata=bounds(0.0, 0.9))
     clock_offset: Tuple[float, float] = field(metadata=bounds(-1e9, 1e9))  # s
     bare_naoqi: float = field(metadata=bounds(0.0, 1.0))  # share of worlds served by a bare NAOqi stand-in
+    pixel_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 50.0))  # grey levels
+    blur_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # px at VGA
+    exposure: Tuple[float, float] = field(metadata=bounds(0.1, 3.0))  # mean brightness factor
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
@@ -90,7 +95,8 @@ class WorldSpec:
                 "start_bearing_deg": round(math.degrees(_bearing(self.start, self.scenario.position)), 1),
                 "speed_scale_sigma": round(dyn.speed_scale_sigma[0], 3), "sway_roll": round(dyn.sway.roll, 3),
                 "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency],
-                "bare_naoqi": self.bare_naoqi}
+                "bare_naoqi": self.bare_naoqi, "pixel_sigma": round(noise.pixel_sigma, 2),
+                "blur_sigma": round(noise.blur_sigma, 2), "exposure": round(noise.exposure, 2)}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -137,7 +143,10 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     camera = robot.camera
     resolutions = {k: _intrinsics(v, rng, r.focal_error, r.principal_error) for k, v in camera.resolutions.items()}
     true_robot = dataclasses.replace(robot, camera=dataclasses.replace(camera, resolutions=resolutions))
-    bare = bool(rng.uniform() < r.bare_naoqi)  # last: the draws above do not depend on it
+    bare = bool(rng.uniform() < r.bare_naoqi)  # after the above: their draws do not depend on it
+    sensor = dataclasses.replace(noise, pixel_sigma=float(rng.uniform(*r.pixel_sigma)),  # last
+                                 blur_sigma=float(rng.uniform(*r.blur_sigma)), exposure=float(rng.uniform(*r.exposure)))
+    config = dataclasses.replace(config, noise=sensor)
     return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
                      true_robot, (x, y, heading), bare)
 

@@ -24,7 +24,8 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   ``cv2.aruco.generateImageMarker`` mapped onto the projected corners by ``cv2.warpPerspective``;
 * colour landmarks: a disc of the landmark's diameter facing the camera (a ball's outline), on a post.
 
-Finally a per-frame exposure gain and Gaussian pixel noise (drawn from a seeded pool).
+Finally the sensor: a Gaussian optical blur of ``blur_sigma`` px at VGA (scaled to the resolution),
+the scene's ``exposure`` times a per-frame gain jitter, and Gaussian pixel noise (a seeded pool).
 Polygon edges are straight between projected vertices: exact for the default zero distortion.
 """
 
@@ -367,7 +368,10 @@ class Renderer:
         pixel_sigma: float,
         gain_sigma: float,
         seed: int,
+        blur_sigma: float = 0.0,
+        exposure: float = 1.0,
     ):
+        """``blur_sigma``: optical blur, px at 640 px wide; ``exposure``: mean brightness factor."""
         self.intrinsics = intrinsics
         self.room = room
         w, h = intrinsics.width, intrinsics.height
@@ -397,6 +401,8 @@ class Renderer:
         self._pixel_sigma = pixel_sigma
         self._gain_sigma = gain_sigma
         self._seed = seed
+        self._blur = blur_sigma * w / 640.0
+        self._exposure = exposure
 
     def background(self, T_WC: np.ndarray) -> np.ndarray:
         """Floor, walls and ceiling seen from T_WC (H x W x 3 BGR)."""
@@ -427,11 +433,14 @@ class Renderer:
         for i in np.argsort(depth)[::-1]:
             if in_view[i]:
                 self._items[i].draw(image, view)
-        return self._add_noise(image, frame_index)
+        return self._sensor(image, frame_index)
 
-    def _add_noise(self, image: np.ndarray, frame_index: int) -> np.ndarray:
+    def _sensor(self, image: np.ndarray, frame_index: int) -> np.ndarray:
+        """Optical blur, exposure and gain jitter, pixel noise."""
+        if self._blur > 0.0:
+            image = cv2.GaussianBlur(image, (0, 0), self._blur)
         rng = np.random.default_rng((self._seed, frame_index))
-        gain = 1.0 + self._gain_sigma * float(rng.standard_normal())
+        gain = self._exposure * (1.0 + self._gain_sigma * float(rng.standard_normal()))
         if gain != 1.0:
             image = cv2.convertScaleAbs(image, alpha=gain)
         if self._pixel_sigma == 0.0:

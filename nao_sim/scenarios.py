@@ -190,6 +190,8 @@ class Noise:
     latency: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # s, stand-in capture-to-delivery range
     drop_rate: float = field(metadata=bounds(0.0, 0.9))  # stand-in: share of frames never delivered
     clock_offset: float = field(metadata=bounds(-1e9, 1e9))  # s, stand-in robot clock minus bridge clock
+    blur_sigma: float = field(metadata=bounds(0.0, 10.0))  # px at VGA, Gaussian optical blur (0: none)
+    exposure: float = field(metadata=bounds(0.1, 3.0))  # mean brightness factor of every frame
 
     def __post_init__(self) -> None:
         if self.latency[0] > self.latency[1]:

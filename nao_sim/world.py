@@ -120,6 +120,8 @@ class SimWorld:
             self.config.noise.pixel_sigma,
             self.config.noise.gain_sigma,
             seed,
+            self.config.noise.blur_sigma,
+            self.config.noise.exposure,
         )
         dyn = self.config.dynamics
         self._dyn = dyn

@@ -139,6 +139,9 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
         assert abs(true.fx / configured.fx - 1.0) == pytest.approx(r.focal_error)
         assert abs(true.cx - configured.cx) == pytest.approx(r.principal_error)
         assert r.latency[0] <= s.config.noise.latency[0] <= s.config.noise.latency[1] <= r.latency[1]
+        for name in ("pixel_sigma", "blur_sigma", "exposure"):
+            low, high = getattr(r, name)
+            assert low <= getattr(s.config.noise, name) <= high, name
     world = RandomWorld(specs[0])
     assert world.true_pose() == pytest.approx(specs[0].start) and world.truth()["odom_origin"] == pytest.approx(list(specs[0].start))
 

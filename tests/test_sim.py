@@ -199,6 +199,27 @@ def test_frames_render_at_both_resolutions_with_noise():
         assert 1.0 < diff.std() < 6.0
 
 
+def test_optical_blur_and_exposure_act_on_the_whole_frame():
+    """``noise.blur_sigma`` (px at VGA, scaled to the resolution) smooths every edge and
+    ``noise.exposure`` scales the brightness; the scene's content stays where it was."""
+    quiet = dataclasses.replace(CONFIG.noise, pixel_sigma=0.0, gain_sigma=0.0)
+    frames = {}
+    for resolution in ("qvga", "vga"):
+        for blur, exposure in ((0.0, 1.0), (1.0, 1.0), (0.0, 0.6)):
+            config = dataclasses.replace(CONFIG, noise=dataclasses.replace(quiet, blur_sigma=blur, exposure=exposure))
+            world = SimWorld("can", ROBOT, resolution, seed=4, config=config)
+            world.teleport(world.true_pose(), (0.0, 0.2))
+            frames[resolution, blur, exposure] = world.render().image.astype(float)
+    for resolution in ("qvga", "vga"):
+        sharp, blurred, dim = (frames[resolution, b, e] for b, e in ((0.0, 1.0), (1.0, 1.0), (0.0, 0.6)))
+        assert cv2.Laplacian(blurred, cv2.CV_64F).var() < 0.5 * cv2.Laplacian(sharp, cv2.CV_64F).var()
+        assert abs(blurred.mean() - sharp.mean()) < 1.0  # blur moves no brightness
+        assert dim.mean() == pytest.approx(0.6 * sharp.mean(), rel=0.01)
+    # the same optical blur is half the pixels at QVGA: a blurred VGA frame reduced matches the QVGA one
+    reduced = cv2.resize(frames["vga", 1.0, 1.0], (320, 240), interpolation=cv2.INTER_AREA)
+    assert np.abs(reduced - frames["qvga", 1.0, 1.0]).mean() < np.abs(reduced - frames["qvga", 0.0, 1.0]).mean()
+
+
 # -- landmarks ---------------------------------------------------------------------------------
 
 
