@@ -183,6 +183,7 @@ class LocalizationParams:
     aruco_min_side_px: float = field(metadata=bounds(4.0, 200.0))  # px, smallest marker side the detector is asked to find (in its image)
     aruco_full_resolution_below: int = field(metadata=bounds(0, 1000))  # markers found reduced: below this, search full size too
     aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
+    aruco_error_correction: float = field(metadata=bounds(0.0, 1.0))  # cv2 errorCorrectionRate: share of the dictionary's correctable bits
     aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
     view_margin_px: float = field(metadata=bounds(0.0, 100.0))  # predicted points this close to the border are not counted
     max_position_std: float = field(metadata=bounds(1e-4, 10.0))  # m: a fix less precise than this is no fix
@@ -438,6 +439,7 @@ class LandmarkDetector:
         detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
         (detector_params.adaptiveThreshWinSizeMin, detector_params.adaptiveThreshWinSizeMax,
          detector_params.adaptiveThreshWinSizeStep) = params.aruco_threshold_windows
+        detector_params.errorCorrectionRate = params.aruco_error_correction
         self.detector_params = detector_params
         self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
         self.colors: Dict[str, List[Landmark]] = {}
