@@ -45,8 +45,15 @@ them is measured two ways:
 
 The probe is used while it agrees with the camera: the smallest latency it implies,
 min_k (r_k - s_k) - offset_probe, must lie in [-(t1 - t0) / 2, ``camera_latency_max``]. Otherwise
-(ALMemory and the camera stamp on different clocks, or a robot without ``getTimestamp``) frames
-take offset_cam, with one warning naming why.
+(ALMemory and the camera stamp on different clocks, or a robot without ``getTimestamp``):
+
+* synchronized clocks: when min_k (r_k - s_k) itself lies in [L_min, ``camera_latency_max``], the
+  robot's stamps are already on the bridge clock (NTP on both, or one machine) and frames keep them
+  (offset 0): a clock off by a fraction of a second and no faster camera would pass too, but an
+  unsynchronized clock is off by far more;
+* else frames take offset_cam, late by the shortest latency above L_min;
+
+with one warning naming which.
 
 Capture-time kinematics. NAOqi does not return the joint angles with an image, and the image
 arrives tens of ms after its capture, while the torso rolls and the head turns. A sampler thread
@@ -191,7 +198,7 @@ class NaoqiBackend(RobotBackend):
         self._probe = ClockProbe(params.clock_probe_window)
         self._probe_count = 0
         self._next_probe = -math.inf  # time.monotonic() of the next clock probe; inf once probing failed
-        self.clock_source = "camera"  # "probe" while the probe's offset agrees with the camera bound
+        self.clock_source = "camera"  # "probe" while the probe's offset agrees with the camera bound, "synchronized"
         self._clock_warned: Set[str] = set()
         self._last_stamp: Optional[tuple] = None
         self._closed = False
@@ -369,24 +376,33 @@ class NaoqiBackend(RobotBackend):
         )
 
     def _capture_stamp(self, robot_stamp: float, received: float) -> float:
-        """The frame's capture time on the bridge clock: by the probe while it agrees with the camera bound."""
+        """The frame's capture time on the bridge clock: by the probe while it agrees with the camera
+        bound; without it, the robot's stamp itself when the clocks agree, else the camera bound."""
         camera_stamp = self._clock.update(robot_stamp, received)
         probe = self._probe.best()
-        if probe is None:
-            return camera_stamp
-        offset, error = probe
-        shortest_latency = self._clock.bound - offset
-        if -error - 1e-3 <= shortest_latency <= self.params.camera_latency_max:
-            self.clock_source = "probe"
-            return robot_stamp + offset
+        if probe is not None:
+            offset, error = probe
+            shortest_latency = self._clock.bound - offset
+            if -error - 1e-3 <= shortest_latency <= self.params.camera_latency_max:
+                self.clock_source = "probe"
+                return robot_stamp + offset
+            self._warn_clock("negative" if shortest_latency < 0.0 else "too long",
+                             f"NAOqi clock probe disagrees with the camera (shortest latency {shortest_latency:.3f} s): "
+                             "ALMemory and the camera stamp on different clocks?")
+        if self.params.camera_latency_min <= self._clock.bound <= self.params.camera_latency_max:
+            self.clock_source = "synchronized"  # robot stamps already on the bridge clock, as NTP keeps them
+            self._warn_clock("synchronized", f"NAOqi image stamps agree with this clock (shortest latency "
+                             f"{self._clock.bound:.3f} s): clocks taken as synchronized, frames stamped as the robot stamps them")
+            return robot_stamp
         self.clock_source = "camera"
-        reason = "negative" if shortest_latency < 0.0 else "too long"
+        self._warn_clock("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
+                         "latency bound, late by its shortest latency above camera_latency_min (docs/frames.md)")
+        return camera_stamp
+
+    def _warn_clock(self, reason: str, message: str) -> None:
         if reason not in self._clock_warned:
             self._clock_warned.add(reason)
-            log.warning("NAOqi clock probe disagrees with the camera (shortest latency %.3f s: %s): ALMemory and the "
-                        "camera stamp on different clocks? Frames stamped by the camera's latency bound",
-                        shortest_latency, reason)
-        return camera_stamp
+            log.warning(message)
 
     def walk(self, v: float, vy: float, omega: float) -> None:
         self.motion.move(float(v), float(vy), float(omega))

@@ -118,6 +118,32 @@ def test_frames_take_the_probe_only_while_it_agrees_with_the_camera(standin):
     assert backend._capture_stamp(101.0, 51.05) == pytest.approx(51.04) and backend.clock_source == "camera"
 
 
+def test_without_a_probe_synchronized_clocks_keep_the_robot_stamps():
+    backend = NaoqiBackend("tcp://127.0.0.1:9", MODEL, dataclasses.replace(NAOQI_PARAMS, camera_latency_max=0.3), "qvga", FPS)
+    assert backend._capture_stamp(100.0, 100.08) == 100.0 and backend.clock_source == "synchronized"  # 80 ms late: our clock
+    assert backend._capture_stamp(100.1, 100.15) == 100.1  # the bound is now 50 ms: still ours
+    other = NaoqiBackend("tcp://127.0.0.1:9", MODEL, NAOQI_PARAMS, "qvga", FPS)
+    assert other._capture_stamp(100.0, 50.08) == pytest.approx(50.08) and other.clock_source == "camera"  # 50 s off
+
+
+@pytest.mark.parametrize("clock_offset, source", [(0.0, "synchronized"), (2000.0, "camera")])
+def test_a_naoqi_without_a_clock_probe_stamps_frames_by_its_clock_or_the_camera_bound(clock_offset, source):
+    """A bare NAOqi (no getTimestamp), frames 0.2 s late: on a clock that is ours the frames keep the
+    robot's stamps, exact; on another clock the camera bound stamps them, 0.2 s late."""
+    world = SimWorld("can", MODEL, resolution="qvga", seed=8)
+    with StandIn(world, clock_offset=clock_offset, latency=LATE, bare=True) as standin:
+        backend = backend_for(standin)
+        backend.start()
+        errors = []
+        for _ in range(6):
+            frame = backend.grab_frame(2.0)
+            errors.append(frame.stamp - standin.video.captures[-1][1])
+        backend.close()
+    assert backend.clock_source == source
+    low, high = (0.0, 0.0) if source == "synchronized" else (LATE[0] - NAOQI_PARAMS.camera_latency_min, LATE[1])
+    assert low - STAMP_ERROR <= min(errors) and max(errors) <= high + STAMP_ERROR, errors
+
+
 def test_probe_stamps_frames_whose_shortest_latency_is_unknown():
     """0.2 s late frames, camera_latency_min 0: the camera bound alone is 0.2 s late, the probe is not."""
     world = SimWorld("can", MODEL, resolution="qvga", seed=8)

@@ -1,11 +1,11 @@
 """The randomized mission matrix: whole missions through the NAOqi backend in randomized worlds.
 
 For each seed, ``nao_sim.randomize.random_world(seed)`` draws a world (layout, object, start,
-walking errors, sway, camera calibration error, frame latency, drops, clock offset); the world is
-served by the NAOqi stand-in (``nao_sim.standin.StandIn``) in this process over libqi, and
-``station start --naoqi`` runs the mission against it as a separate process (its bridge drives the
-stand-in with YUV422 frames), with the layout as its landmark map and the configured (not the
-true) camera. Measured against the simulator's truth:
+walking errors, sway, camera calibration error, frame latency, drops, clock offset, a bare NAOqi
+for a quarter, sensor noise, blur and brightness); the world is served by the NAOqi stand-in
+(``nao_sim.standin.StandIn``) in this process over libqi, and ``station start --naoqi`` runs the
+mission against it as a separate process (its bridge drives the stand-in with YUV422 frames, RGB
+from a bare one), with the layout as its landmark map and the configured (not the true) camera. Measured against the simulator's truth:
 
 * centre error |(x, y) - (x_true, y_true)| and radius error r - r_true, r_true the object's mean
   half-breadth (``Scenario.mean_half_breadth``: what a cylinder fitted to apparent widths from all
@@ -301,11 +301,14 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
                 f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
 
     objects = sorted({r.world["object"] for r in results})
+    bare = [r for r in results if r.world.get("bare_naoqi")]
+    blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= 0.7]
     lines = [
         f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
-        "against the stand-in (YUV422, latency, drops, clock offset), in a random landmark layout, with a random object, "
-        "start pose (1.0-1.2 m, object up to 120 deg off the heading), walking errors, sway and a camera calibration "
-        "off by 0.5 % and 1 px. Errors over completed missions; clearance is the least over all missions (true robot "
+        "against the stand-in (YUV422, latency, drops, clock offset; a quarter of them a bare NAOqi: docs/bridge.md), "
+        "in a random landmark layout, with a random object, start pose (1.0-1.2 m, object up to 120 deg off the heading), "
+        "walking errors, sway, a camera calibration off by 0.5 % and 1 px, and a sensor of 1-4 grey levels of noise, "
+        "0-1 px of blur and 0.6-1.2 of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
         "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
@@ -313,6 +316,9 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
+        "",
+        f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
+        f"of 0.7 px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
         "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",

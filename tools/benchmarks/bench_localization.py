@@ -6,7 +6,9 @@ the can from 0.6-1.1 m at a random azimuth, the robot's heading 0.2 rad (1 sigma
 the head aimed at the object (``RobotModel.look_at``), VGA, simulator noise. Counted: the frames
 with >= 2 landmarks wholly in the image (a marker's four corners facing the camera, a ball with its
 rim). The localizer gets T_BC rolled and pitched by +-0.3 deg each (the torso sway the kinematics
-missed). *cold*: ``measure`` without a prior (repeated colours by the hypothesis search); *prior*:
+missed). *cold*: ``measure`` without a prior (repeated colours by the hypothesis search); *still,
+cold*: the same frames as a standing robot gives them (T_BC as the kinematics report it, no sway
+missed, the standing roll prior ``roll_sigma_still``: the issue's "still frames"); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking); two baselines, cold: *pitch held* to T_BC's
 (``pitch_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
 (``aruco_edge_refinement`` off: the corners biased inwards, agent/marker_corners.py). "well-posed" is
@@ -54,11 +56,12 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
     held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD), world.landmarks, camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
-    solvers = (("cold", localizer, False), ("prior", localizer, True), ("cold, pitch held", held, False),
-               ("cold, cornerSubPix corners", subpix, False))
+    # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior)
+    solvers = (("cold", localizer, False, False), ("still, cold", localizer, False, True), ("prior", localizer, True, False),
+               ("cold, pitch held", held, False, False), ("cold, cornerSubPix corners", subpix, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
-    rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, _, _ in solvers}
+    rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
     for _ in range(VIEWS):
         d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
         truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
@@ -71,11 +74,14 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
         roll, pitch = rng.choice([-1.0, 1.0], 2) * TILT
         T_BC = rot_x(roll) @ rot_y(pitch) @ frame.T_BC
         prior = tuple(t + o for t, o in zip(truth, PRIOR_OFFSET))
-        for mode, solver, with_prior in solvers:
+        for mode, solver, with_prior, standing in solvers:
             row = rows[mode]
             solver.reset()
             begin = time.perf_counter()
-            fix = solver.measure(frame.image, T_BC, prior if with_prior else None)
+            if standing:
+                fix = solver.measure(frame.image, frame.T_BC, None, params.roll_sigma_still)
+            else:
+                fix = solver.measure(frame.image, T_BC, prior if with_prior else None)
             row["times"].append((time.perf_counter() - begin) * 1e3)
             row["shown"] += 1
             row["posed"] += posed
