@@ -84,6 +84,11 @@ class KinematicsHistory:
         with self._changed:
             return len(self._samples)
 
+    def samples(self) -> List[KinematicSample]:
+        """A copy of the samples kept, oldest first."""
+        with self._changed:
+            return list(self._samples)
+
     def at(self, stamp: float) -> Union[KinematicSample, str]:
         """The interpolated readings at ``stamp``, or the reason there are none (BEFORE, AFTER, GAP)."""
         with self._changed:

@@ -78,6 +78,7 @@ import numpy as np
 import qi
 
 from nao_bridge.backend import RobotBackend
+from nao_bridge.camera_latency import LatencyEstimator, camera_heading
 from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
 from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_core.config import bounds
@@ -209,6 +210,10 @@ class NaoqiBackend(RobotBackend):
         self.kinematics_dropped: Counter[str] = collections.Counter()  # frames without capture-time kinematics, by reason
         self._sampler: Optional[threading.Thread] = None
         self._stop_sampling = threading.Event()
+        intrinsics = model.camera.intrinsics(resolution)
+        self.latency = LatencyEstimator(params.camera_latency_max, float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width))
+        self._bound_stamp = math.nan  # the last frame's camera-bound stamp
+        self._logged_latency = 0.0
         self._last_drop_log = -math.inf
 
     def start(self) -> None:
@@ -358,6 +363,9 @@ class NaoqiBackend(RobotBackend):
     def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> Optional[CameraFrame]:
         """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
         stamp = self._capture_stamp(robot_stamp, received)
+        bgr = image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6])
+        if self.clock_source == "camera":
+            self._learn_latency(bgr)
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
         kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
@@ -367,13 +375,24 @@ class NaoqiBackend(RobotBackend):
                 log.warning("NAOqi frame at %.3f dropped: %s; dropped so far %s", stamp, kin, dict(self.kinematics_dropped))
             return None
         return CameraFrame(
-            image=image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6]),
+            image=bgr,
             stamp=stamp,
             head_yaw=kin.head[0],
             head_pitch=kin.head[1],
             T_BC=nao_to_optical(kin.T),
             odom=kin.odom,
         )
+
+    def _learn_latency(self, bgr: np.ndarray) -> None:
+        """Feed the camera-latency estimator (nao_bridge/camera_latency.py) the frame and the camera's headings."""
+        samples = self.kinematics.samples()
+        stamps = np.array([k.stamp for k in samples])
+        headings = np.unwrap([camera_heading(k.odom[2], k.T) for k in samples]) if samples else np.zeros(0)
+        self.latency.add(bgr, self._bound_stamp, (stamps, headings))
+        if abs(self.latency.tau - self._logged_latency) >= 0.01:
+            self._logged_latency = self.latency.tau
+            log.info("NAOqi camera latency from the images: frames stamped %.0f ms before the camera bound (%d turning pairs)",
+                     1e3 * self.latency.tau, self.latency.pairs_used)
 
     def _capture_stamp(self, robot_stamp: float, received: float) -> float:
         """The frame's capture time on the bridge clock: by the probe while it agrees with the camera
@@ -396,8 +415,9 @@ class NaoqiBackend(RobotBackend):
             return robot_stamp
         self.clock_source = "camera"
         self._warn_clock("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
-                         "latency bound, late by its shortest latency above camera_latency_min (docs/frames.md)")
-        return camera_stamp
+                         "latency bound less the latency its images show (docs/frames.md)")
+        self._bound_stamp = camera_stamp
+        return camera_stamp - self.latency.tau
 
     def _warn_clock(self, reason: str, message: str) -> None:
         if reason not in self._clock_warned:

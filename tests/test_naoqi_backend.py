@@ -140,8 +140,10 @@ def test_a_naoqi_without_a_clock_probe_stamps_frames_by_its_clock_or_the_camera_
             errors.append(frame.stamp - standin.video.captures[-1][1])
         backend.close()
     assert backend.clock_source == source
-    low, high = (0.0, 0.0) if source == "synchronized" else (LATE[0] - NAOQI_PARAMS.camera_latency_min, LATE[1])
-    assert low - STAMP_ERROR <= min(errors) and max(errors) <= high + STAMP_ERROR, errors
+    if source == "synchronized":
+        assert np.abs(errors).max() <= STAMP_ERROR, errors
+    else:  # never early; late by the shortest latency seen so far (longer while a loaded machine polls late)
+        assert min(errors) >= LATE[0] - NAOQI_PARAMS.camera_latency_min - STAMP_ERROR and max(errors) < LATE[1] + 0.1, errors
 
 
 def test_probe_stamps_frames_whose_shortest_latency_is_unknown():

@@ -1,0 +1,85 @@
+"""The camera's latency from its own images, for a NAOqi whose clock cannot be probed.
+
+Without ``ALMemory.getTimestamp`` and with the robot's clock off the bridge's, a frame's capture
+time is known only up to the camera's shortest latency L: the camera bound b_k (docs/frames.md)
+is the capture time plus tau = L - ``camera_latency_min`` >= 0, and tau is tens of ms. While the
+head turns at 1 rad/s, kinematics read tau late are tau rad off, and the station's bearings with
+them. The images themselves say when they were taken: between two frames the scene shifts
+horizontally by the camera's turn. With psi(t) the camera's heading in the odometry frame (the
+odometry heading plus the yaw of the camera's optical axis in the robot frame, both from the
+kinematics history), the shift of frame k against frame k - 1 (``cv2.phaseCorrelate`` on
+thumbnails ``THUMB_WIDTH`` px wide, focal length f in thumbnail pixels) is
+
+    dx_k = f (psi(b_k - tau) - psi(b_{k-1} - tau)) + e_k,
+
+and tau is the grid value in [0, ``max_latency``] (step ``STEP``) that minimizes sum_k dx_k residual^2
+over the last ``window`` frame pairs whose predicted shift exceeds ``MIN_SHIFT`` px (turns, not
+stillness or walking parallax). psi is interpolated from the history as each frame arrives, for
+every grid value at once, since the history keeps only the last seconds. No estimate until
+``min_pairs`` such pairs; the estimate holds when the best residual beats the no-latency one.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from typing import Deque, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+THUMB_WIDTH = 160  # px: images are correlated at this width
+STEP = 0.002  # s between candidate latencies
+MIN_SHIFT = 2.0  # px (thumbnail): pairs whose predicted shift is smaller say little about tau
+MIN_RESPONSE = 0.05  # phase-correlation peak below this: no reliable shift (blur, a blank view)
+
+
+def camera_heading(odom_theta: float, T_robot_camera: np.ndarray) -> float:
+    """rad: the heading of the camera's optical axis (NAO camera frame: x forward) in the odometry frame."""
+    return odom_theta + math.atan2(T_robot_camera[1, 0], T_robot_camera[0, 0])
+
+
+class LatencyEstimator:
+    """tau, the camera bound's lateness, from image shifts against the camera's turns (module docstring)."""
+
+    def __init__(self, max_latency: float, focal_px: float, image_width: int, window: int = 300, min_pairs: int = 20):
+        self.taus = np.arange(0.0, max_latency + 1e-9, STEP)
+        self.focal = focal_px * THUMB_WIDTH / image_width  # in thumbnail pixels
+        self.min_pairs = min_pairs
+        self._pairs: Deque[Tuple[float, np.ndarray]] = collections.deque(maxlen=window)  # (dx, dpsi per tau)
+        self._previous: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (thumbnail, psi per tau)
+        self.tau = 0.0
+        self.pairs_used = 0
+
+    def add(self, bgr: np.ndarray, bound_stamp: float, history: Tuple[Sequence[float], Sequence[float]]) -> None:
+        """One frame: its image, camera-bound stamp, and the history as (stamps, unwrapped psi) arrays."""
+        stamps, psi = history
+        if len(stamps) < 2:
+            return
+        times = bound_stamp - self.taus
+        if times[0] < stamps[0] or times[-1] > stamps[-1]:  # no candidate capture inside the history
+            self._previous = None
+            return
+        heading = np.interp(times, stamps, psi)  # held at the ends: candidates past the newest reading
+        height = max(1, round(bgr.shape[0] * THUMB_WIDTH / bgr.shape[1]))
+        thumb = cv2.resize(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), (THUMB_WIDTH, height), interpolation=cv2.INTER_AREA)
+        thumb = thumb.astype(np.float32)
+        if self._previous is not None:
+            previous, previous_heading = self._previous
+            (dx, _), response = cv2.phaseCorrelate(previous, thumb, cv2.createHanningWindow(thumb.shape[::-1], cv2.CV_32F))
+            if response >= MIN_RESPONSE and math.isfinite(dx):
+                self._pairs.append((float(dx), heading - previous_heading))
+                self._update()
+        self._previous = (thumb, heading)
+
+    def _update(self) -> None:
+        dx = np.array([p[0] for p in self._pairs])
+        predicted = self.focal * np.array([p[1] for p in self._pairs])  # pairs x taus
+        informative = np.abs(predicted).max(axis=1) >= MIN_SHIFT
+        self.pairs_used = int(informative.sum())
+        if self.pairs_used < self.min_pairs:
+            return
+        residual = ((dx[informative, None] - predicted[informative]) ** 2).sum(axis=0)
+        best = int(np.argmin(residual))
+        if residual[best] < residual[0]:
+            self.tau = float(self.taus[best])

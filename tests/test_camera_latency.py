@@ -1,0 +1,87 @@
+"""The camera's latency learned from its images (nao_bridge/camera_latency.py): synthetic panning
+views with a known latency, and the NAOqi backend against a bare stand-in whose clock cannot be
+probed (docs/frames.md)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from nao_bridge.camera_latency import STEP, THUMB_WIDTH, LatencyEstimator
+from nao_bridge.naoqi_backend import NaoqiBackend
+from nao_core.config import CONFIG_DIR, load
+from nao_core.robot_model import load_robot_model
+from nao_sim.standin import StandIn
+from nao_sim.world import SimWorld
+
+FOCAL = 140.0  # px at the thumbnail's width
+
+
+def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2.0, fps: float = 15.0):
+    """(image, camera-bound stamp, history) of a camera panning sinusoidally over a textured scene:
+    frame k is captured at t_k and stamped t_k + tau; psi(t) = sweep sin(2 pi t / period)."""
+    rng = np.random.default_rng(0)
+    scene = cv2.GaussianBlur(rng.uniform(0, 255, (120, 2000)).astype(np.float32), (0, 0), 2.0)
+
+    def psi(t):
+        return sweep * np.sin(2.0 * math.pi * np.asarray(t) / period)
+
+    history_times = np.arange(-1.0, frames / fps + 1.0, 0.02)
+    for k in range(frames):
+        t = k / fps
+        shift = 1000.0 - FOCAL * float(psi(t))  # the scene moves right (+dx) as the camera turns left (+psi)
+        view = cv2.warpAffine(scene, np.float32([[1, 0, -shift], [0, 1, 0]]), (THUMB_WIDTH, 120), flags=cv2.INTER_LINEAR)
+        image = cv2.cvtColor(np.clip(view, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+        known = history_times <= t + tau + 0.03  # the history holds the readings up to the frame's processing
+        yield image, t + tau, (history_times[known], psi(history_times[known]))
+
+
+@pytest.mark.parametrize("tau", [0.0, 0.06, 0.13])
+def test_the_latency_of_panning_views_is_found(tau):
+    estimator = LatencyEstimator(0.5, FOCAL, THUMB_WIDTH)
+    for image, stamp, history in panning_views(tau, 60):
+        estimator.add(image, stamp, history)
+    assert estimator.pairs_used >= estimator.min_pairs
+    assert estimator.tau == pytest.approx(tau, abs=2 * STEP)
+
+
+def test_a_still_camera_teaches_nothing():
+    estimator = LatencyEstimator(0.5, FOCAL, THUMB_WIDTH)
+    for image, stamp, history in panning_views(0.1, 60, sweep=0.0):
+        estimator.add(image, stamp, history)
+    assert estimator.pairs_used == 0 and estimator.tau == 0.0
+
+
+def test_a_bare_naoqi_on_another_clock_gets_its_frames_stamped_by_what_they_show():
+    """No clock probe (bare stand-in), the robot clock 2000 s off, frames 100-110 ms late: the camera
+    bound alone stamps them 100 ms late; once the head has turned enough the images give the
+    latency and the stamps are within 15 ms."""
+    from nao_bridge.bridge import BridgeParams
+
+    model = load_robot_model()
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi
+    world = SimWorld("can", model, resolution="qvga", seed=8)
+    with StandIn(world, clock_offset=2000.0, latency=(0.10, 0.11), bare=True) as standin:
+        backend = NaoqiBackend(standin.url, model, params, "qvga", 15.0)
+        backend.start()
+        errors = []
+        started = time.monotonic()
+        while time.monotonic() - started < 14.0 and (len(errors) < 20 or backend.latency.pairs_used < backend.latency.min_pairs):
+            backend.set_head(0.9 if int(time.monotonic() - started) % 2 == 0 else -0.9, 0.1, 0.5)
+            frame = backend.grab_frame(1.0)
+            if frame is not None:
+                errors.append(frame.stamp - standin.video.captures[-1][1])
+        late = []
+        for _ in range(10):
+            frame = backend.grab_frame(1.0)
+            if frame is not None:
+                late.append(frame.stamp - standin.video.captures[-1][1])  # served: the last capture
+        backend.close()
+    assert backend.clock_source == "camera"
+    assert errors[0] > 0.09  # before: the camera bound, a latency late
+    assert backend.latency.tau == pytest.approx(0.10, abs=0.01)
+    assert late and max(abs(e) for e in late) < 0.015
