@@ -183,8 +183,9 @@ class ALVideoDevice:
             )
         with self._lock:
             handle = f"{name}_{len(self._subscribers)}"
+            answered = color_space if self._answer_color_space is None else self._answer_color_space
             self._subscribers[handle] = {
-                "color_space": color_space if self._answer_color_space is None else self._answer_color_space, "period": 1.0 / fps, "start": time.time(), "index": -1, "image": None,
+                "color_space": answered, "period": 1.0 / fps, "start": time.time(), "index": -1, "image": None,
                 "pending": {},  # frame index -> (image, (robot stamp, capture)) captured (rendered), not yet due
             }
         return handle

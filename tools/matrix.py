@@ -5,7 +5,8 @@ walking errors, sway, camera calibration error, frame latency, drops, clock offs
 for a quarter, sensor noise, blur and brightness); the world is served by the NAOqi stand-in
 (``nao_sim.standin.StandIn``) in this process over libqi, and ``station start --naoqi`` runs the
 mission against it as a separate process (its bridge drives the stand-in with YUV422 frames, RGB
-from a bare one), with the layout as its landmark map and the configured (not the true) camera. Measured against the simulator's truth:
+from a bare one), with the layout as its landmark map and the configured (not the true) camera.
+Measured against the simulator's truth:
 
 * centre error |(x, y) - (x_true, y_true)| and radius error r - r_true, r_true the object's mean
   half-breadth (``Scenario.mean_half_breadth``: what a cylinder fitted to apparent widths from all

@@ -57,8 +57,9 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD), world.landmarks, camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
     # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior)
-    solvers = (("cold", localizer, False, False), ("still, cold", localizer, False, True), ("prior", localizer, True, False),
-               ("cold, pitch held", held, False, False), ("cold, cornerSubPix corners", subpix, False, False))
+    solvers = (("cold", localizer, False, False), ("still, cold", localizer, False, True),
+               ("prior", localizer, True, False), ("cold, pitch held", held, False, False),
+               ("cold, cornerSubPix corners", subpix, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
     rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
