@@ -89,7 +89,8 @@ def replay_main(port: int, seconds: float) -> None:
             return RobotState(time.time(), (0.0, 0.0, 0.0), 0.0, 0.0, False, False, 0.9)
 
     params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge")
-    params = dataclasses.replace(params, transport=TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), fps=FPS)
+    transport = dataclasses.replace(params.transport, listen=(f"tcp/127.0.0.1:{port}",))  # the shipped access policy
+    params = dataclasses.replace(params, transport=transport, fps=FPS)
     with Bridge(Replay(), model, params, "replay"):
         print("ready", flush=True)
         time.sleep(seconds)
@@ -102,7 +103,8 @@ def _measure(proc: subprocess.Popen, port: int) -> dict:
     from nao_core.transport import TransportConfig, open_session
 
     received: List[tuple] = []
-    session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+    # as the station connects: the bridge's default access policy serves only the credentials' station user
+    session = open_session(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",), credentials="default", user="station"))
     keys = RobotKeys("nao")
 
     def on_frame(sample: "zenoh.Sample") -> None:
@@ -178,11 +180,11 @@ def run() -> str:
         "",
         "Bridge process CPU (user + system over a 10 s window, % of one core; target <= 20 %) and frame",
         "latency (station receive time minus capture stamp, same clock) with a station subscriber on",
-        "loopback. `naoqi`: `nao-bridge --naoqi` against the libqi NAOqi stand-in in another process (the",
+        "loopback, both sides with the shipped access policy (the station's credentials). `naoqi`: `nao-bridge --naoqi` against the libqi NAOqi stand-in in another process (the",
         "simulator's rendering is not counted); `replay`: the bridge on pre-rendered frames, its own cost only.",
         "The stand-in renders each image on request, so on a loaded machine it may deliver fewer than",
         "15 fps: the CPU per frame column normalises. `naoqi` latency is measured from the capture stamp",
-        "estimated through the robot-clock offset (late by the smallest transfer latency, docs/bridge.md).",
+        "the clock probe gives (docs/frames.md): the stand-in serves frames 30-120 ms after their capture.",
         "Shared 2-core machine: expect noise of several points.",
         "",
         "Command: `.venv/bin/python -m tools.bench --only bridge`",
