@@ -34,9 +34,10 @@ MIN_SHIFT = 2.0  # px (thumbnail): pairs whose predicted shift is smaller say li
 MIN_RESPONSE = 0.05  # phase-correlation peak below this: no reliable shift (blur, a blank view)
 
 
-def camera_heading(odom_theta: float, T_robot_camera: np.ndarray) -> float:
-    """rad: the heading of the camera's optical axis (NAO camera frame: x forward) in the odometry frame."""
-    return odom_theta + math.atan2(T_robot_camera[1, 0], T_robot_camera[0, 0])
+def camera_heading(odom_theta: np.ndarray, T_robot_camera: np.ndarray) -> np.ndarray:
+    """rad: the heading of the camera's optical axis (NAO camera frame: x forward) in the odometry frame,
+    for N odometry headings and N x 4 x 4 camera transforms."""
+    return odom_theta + np.arctan2(T_robot_camera[..., 1, 0], T_robot_camera[..., 0, 0])
 
 
 class LatencyEstimator:
@@ -46,8 +47,12 @@ class LatencyEstimator:
         self.taus = np.arange(0.0, max_latency + 1e-9, STEP)
         self.focal = focal_px * THUMB_WIDTH / image_width  # in thumbnail pixels
         self.min_pairs = min_pairs
-        self._pairs: Deque[Tuple[float, np.ndarray]] = collections.deque(maxlen=window)  # (dx, dpsi per tau)
+        self._window = window
+        # per frame pair, its squared residual per tau when informative (predicted shift >= MIN_SHIFT), else None
+        self._pairs: Deque[Optional[np.ndarray]] = collections.deque()
+        self._residual = np.zeros(len(self.taus))  # sum over the informative pairs in the window
         self._previous: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (thumbnail, psi per tau)
+        self._hanning: Optional[np.ndarray] = None
         self.tau = 0.0
         self.pairs_used = 0
 
@@ -64,22 +69,28 @@ class LatencyEstimator:
         height = max(1, round(bgr.shape[0] * THUMB_WIDTH / bgr.shape[1]))
         thumb = cv2.resize(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), (THUMB_WIDTH, height), interpolation=cv2.INTER_AREA)
         thumb = thumb.astype(np.float32)
+        if self._hanning is None or self._hanning.shape != thumb.shape:
+            self._hanning = cv2.createHanningWindow(thumb.shape[::-1], cv2.CV_32F)
         if self._previous is not None:
             previous, previous_heading = self._previous
-            (dx, _), response = cv2.phaseCorrelate(previous, thumb, cv2.createHanningWindow(thumb.shape[::-1], cv2.CV_32F))
+            (dx, _), response = cv2.phaseCorrelate(previous, thumb, self._hanning)
             if response >= MIN_RESPONSE and math.isfinite(dx):
-                self._pairs.append((float(dx), heading - previous_heading))
-                self._update()
+                self._add_pair(float(dx), self.focal * (heading - previous_heading))
         self._previous = (thumb, heading)
 
-    def _update(self) -> None:
-        dx = np.array([p[0] for p in self._pairs])
-        predicted = self.focal * np.array([p[1] for p in self._pairs])  # pairs x taus
-        informative = np.abs(predicted).max(axis=1) >= MIN_SHIFT
-        self.pairs_used = int(informative.sum())
-        if self.pairs_used < self.min_pairs:
-            return
-        residual = ((dx[informative, None] - predicted[informative]) ** 2).sum(axis=0)
-        best = int(np.argmin(residual))
-        if residual[best] < residual[0]:
-            self.tau = float(self.taus[best])
+    def _add_pair(self, dx: float, predicted: np.ndarray) -> None:
+        """A frame pair's observed and predicted (per tau) shifts; tau re-chosen over the window."""
+        if len(self._pairs) == self._window:
+            dropped = self._pairs.popleft()
+            if dropped is not None:
+                self._residual -= dropped
+                self.pairs_used -= 1
+        squared = (dx - predicted) ** 2 if np.abs(predicted).max() >= MIN_SHIFT else None
+        self._pairs.append(squared)
+        if squared is not None:
+            self._residual += squared
+            self.pairs_used += 1
+        if self.pairs_used >= self.min_pairs:
+            best = int(np.argmin(self._residual))
+            if self._residual[best] < self._residual[0]:
+                self.tau = float(self.taus[best])

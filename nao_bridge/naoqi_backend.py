@@ -212,7 +212,6 @@ class NaoqiBackend(RobotBackend):
         self._stop_sampling = threading.Event()
         intrinsics = model.camera.intrinsics(resolution)
         self.latency = LatencyEstimator(params.camera_latency_max, float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width))
-        self._bound_stamp = math.nan  # the last frame's camera-bound stamp
         self._logged_latency = 0.0
         self._last_drop_log = -math.inf
 
@@ -365,7 +364,7 @@ class NaoqiBackend(RobotBackend):
         stamp = self._capture_stamp(robot_stamp, received)
         bgr = image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6])
         if self.clock_source == "camera":
-            self._learn_latency(bgr)
+            self._learn_latency(bgr, stamp + self.latency.tau)
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
         kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
@@ -383,12 +382,15 @@ class NaoqiBackend(RobotBackend):
             odom=kin.odom,
         )
 
-    def _learn_latency(self, bgr: np.ndarray) -> None:
-        """Feed the camera-latency estimator (nao_bridge/camera_latency.py) the frame and the camera's headings."""
+    def _learn_latency(self, bgr: np.ndarray, bound_stamp: float) -> None:
+        """Feed the camera-latency estimator (nao_bridge/camera_latency.py) the frame, its camera-bound
+        stamp and the camera's headings over the history."""
         samples = self.kinematics.samples()
+        if len(samples) < 2:
+            return
         stamps = np.array([k.stamp for k in samples])
-        headings = np.unwrap([camera_heading(k.odom[2], k.T) for k in samples]) if samples else np.zeros(0)
-        self.latency.add(bgr, self._bound_stamp, (stamps, headings))
+        headings = camera_heading(np.array([k.odom[2] for k in samples]), np.array([k.T for k in samples]))
+        self.latency.add(bgr, bound_stamp, (stamps, np.unwrap(headings)))
         if abs(self.latency.tau - self._logged_latency) >= 0.01:
             self._logged_latency = self.latency.tau
             log.info("NAOqi camera latency from the images: frames stamped %.0f ms before the camera bound (%d turning pairs)",
@@ -416,7 +418,6 @@ class NaoqiBackend(RobotBackend):
         self.clock_source = "camera"
         self._warn_clock("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
                          "latency bound less the latency its images show (docs/frames.md)")
-        self._bound_stamp = camera_stamp
         return camera_stamp - self.latency.tau
 
     def _warn_clock(self, reason: str, message: str) -> None:
