@@ -58,7 +58,7 @@ import yaml
 
 from agent.camera import CameraModel
 from nao_core.robot_model import load_robot_model
-from nao_sim.randomize import RandomWorld, WorldSpec, random_world
+from nao_sim.randomize import RandomWorld, WorldSpec, load_randomizer, random_world
 from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
 from station.config import load_station_config
@@ -66,6 +66,7 @@ from station.mcap_log import read_log
 from station.topics import DECISION, KEYFRAME, POSE, SELF_CALIBRATION
 from tools.bench import BEGIN, END, section
 
+BLURRED = 0.7  # px at VGA: worlds blurred at least this much are counted apart in the table
 POLL = 0.02  # s, truth sampling period for the clearance (<= 2 mm of walking at 0.1 m/s)
 STOP_CALLS = ("ALMotion.stopMove", "ALMotion.killMove")
 MISSION_TIMEOUT = 400.0  # s of wall time, beyond the mission's own limit (start-up, final carve, outputs)
@@ -303,13 +304,16 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
 
     objects = sorted({r.world["object"] for r in results})
     bare = [r for r in results if r.world.get("bare_naoqi")]
-    blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= 0.7]
+    blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= BLURRED]
+    w = load_randomizer()
     lines = [
         f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
-        "against the stand-in (YUV422, latency, drops, clock offset; a quarter of them a bare NAOqi: docs/bridge.md), "
-        "in a random landmark layout, with a random object, start pose (1.0-1.2 m, object up to 120 deg off the heading), "
-        "walking errors, sway, a camera calibration off by 0.5 % and 1 px, and a sensor of 1-4 grey levels of noise, "
-        "0-1 px of blur and 0.6-1.2 of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
+        f"against the stand-in (YUV422, latency, drops, clock offset; {100 * w.bare_naoqi:g} % of them a bare NAOqi: "
+        "docs/bridge.md), in a random landmark layout, with a random object, start pose "
+        f"({w.start_distance[0]:g}-{w.start_distance[1]:g} m, object up to {math.degrees(w.start_bearing):.0f} deg off the heading), "
+        f"walking errors, sway, a camera calibration off by {100 * w.focal_error:g} % and {w.principal_error:g} px, and a sensor "
+        f"of {w.pixel_sigma[0]:g}-{w.pixel_sigma[1]:g} grey levels of noise, {w.blur_sigma[0]:g}-{w.blur_sigma[1]:g} px of blur "
+        f"and {w.exposure[0]:g}-{w.exposure[1]:g} of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
         "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
@@ -319,7 +323,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
-        f"of 0.7 px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
+        f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
         "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
