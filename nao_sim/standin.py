@@ -265,6 +265,9 @@ class BareALMemory:
 
     def getData(self, key: str) -> Any:
         self._record("ALMemory.getData", key)
+        return self._lookup(key)
+
+    def _lookup(self, key: str) -> Any:
         with self._lock:
             if key in self._data:
                 return self._data[key]
@@ -296,14 +299,12 @@ class ALMemory(BareALMemory):
             seconds, fraction = divmod(self._stamps[key], 1.0)
             return [self._data[key], int(seconds), int(fraction * 1e6)]
 
-    def getData(self, key: str) -> Any:
+    def _lookup(self, key: str) -> Any:
         if key in FALL_KEYS:
-            self._record("ALMemory.getData", key)
             return bool(self._world.is_fallen())
         if key == BATTERY_KEY:
-            self._record("ALMemory.getData", key)
             return float(self._world.battery())
-        return super().getData(key)
+        return super()._lookup(key)
 
     def subscriber(self, key: str) -> _MemorySubscriber:
         self._record("ALMemory.subscriber", key)

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from nao_bridge.bridge import BridgeParams
 from nao_bridge.camera_latency import STEP, THUMB_WIDTH, LatencyEstimator
 from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_core.config import CONFIG_DIR, load
@@ -60,8 +61,6 @@ def test_a_bare_naoqi_on_another_clock_gets_its_frames_stamped_by_what_they_show
     """No clock probe (bare stand-in), the robot clock 2000 s off, frames 100-110 ms late: the camera
     bound alone stamps them 100 ms late; once the head has turned enough the images give the
     latency and the stamps are within 15 ms."""
-    from nao_bridge.bridge import BridgeParams
-
     model = load_robot_model()
     params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi
     world = SimWorld("can", model, resolution="qvga", seed=8)
