@@ -15,7 +15,10 @@ thumbnails ``THUMB_WIDTH`` px wide, focal length f in thumbnail pixels) is
 and tau is the grid value in [0, ``max_latency``] (step ``STEP``) that minimizes sum_k dx_k residual^2
 over the last ``window`` frame pairs whose predicted shift exceeds ``MIN_SHIFT`` px (turns, not
 stillness or walking parallax). psi is interpolated from the history as each frame arrives, for
-every grid value at once, since the history keeps only the last seconds. No estimate until
+every grid value at once, since the history keeps only the last seconds; each history is unwrapped
+on its own, so the turn between two frames is taken modulo 2 pi (a heading crossing +-pi while the
+history slides shifts a whole unwrapped history by 2 pi, and an unwrapped difference would then
+predict a full turn between two frames). No estimate until
 ``min_pairs`` such pairs; the estimate holds when the best residual beats the no-latency one.
 """
 
@@ -75,7 +78,8 @@ class LatencyEstimator:
             previous, previous_heading = self._previous
             (dx, _), response = cv2.phaseCorrelate(previous, thumb, self._hanning)
             if response >= MIN_RESPONSE and math.isfinite(dx):
-                self._add_pair(float(dx), self.focal * (heading - previous_heading))
+                turn = np.remainder(heading - previous_heading + math.pi, 2.0 * math.pi) - math.pi
+                self._add_pair(float(dx), self.focal * turn)
         self._previous = (thumb, heading)
 
     def _add_pair(self, dx: float, predicted: np.ndarray) -> None:

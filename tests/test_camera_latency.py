@@ -22,14 +22,16 @@ from nao_sim.world import SimWorld
 FOCAL = 140.0  # px at the thumbnail's width
 
 
-def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2.0, fps: float = 15.0):
+def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2.0, fps: float = 15.0,
+                  centre: float = 0.0, kept: float = 10.0):
     """(image, camera-bound stamp, history) of a camera panning sinusoidally over a textured scene:
-    frame k is captured at t_k and stamped t_k + tau; psi(t) = sweep sin(2 pi t / period)."""
+    frame k is captured at t_k and stamped t_k + tau; psi(t) = centre + sweep sin(2 pi t / period),
+    the history's last ``kept`` s of headings as the backend gives them: read in (-pi, pi], unwrapped."""
     rng = np.random.default_rng(0)
     scene = cv2.GaussianBlur(rng.uniform(0, 255, (120, 2000)).astype(np.float32), (0, 0), 2.0)
 
     def psi(t):
-        return sweep * np.sin(2.0 * math.pi * np.asarray(t) / period)
+        return centre + sweep * np.sin(2.0 * math.pi * np.asarray(t) / period)
 
     history_times = np.arange(-1.0, frames / fps + 1.0, 0.02)
     for k in range(frames):
@@ -37,8 +39,8 @@ def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2
         shift = 1000.0 - FOCAL * float(psi(t))  # the scene moves right (+dx) as the camera turns left (+psi)
         view = cv2.warpAffine(scene, np.float32([[1, 0, -shift], [0, 1, 0]]), (THUMB_WIDTH, 120), flags=cv2.INTER_LINEAR)
         image = cv2.cvtColor(np.clip(view, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
-        known = history_times <= t + tau + 0.03  # the history holds the readings up to the frame's processing
-        yield image, t + tau, (history_times[known], psi(history_times[known]))
+        known = (history_times <= t + tau + 0.03) & (history_times >= t + tau + 0.03 - kept)  # up to the frame's processing
+        yield image, t + tau, (history_times[known], np.unwrap(np.angle(np.exp(1j * psi(history_times[known])))))
 
 
 @pytest.mark.parametrize("tau", [0.0, 0.06, 0.13])
@@ -48,6 +50,17 @@ def test_the_latency_of_panning_views_is_found(tau):
         estimator.add(image, stamp, history)
     assert estimator.pairs_used >= estimator.min_pairs
     assert estimator.tau == pytest.approx(tau, abs=2 * STEP)
+
+
+def test_a_heading_crossing_pi_as_the_history_slides_does_not_count_as_a_full_turn():
+    """Panning about psi = pi with a 1 s history: the history's first reading crosses +-pi back and
+    forth, so consecutive unwrapped histories differ by 2 pi (a matrix mission's estimate jumped
+    from 58 to 492 ms when the odometry heading crossed pi)."""
+    estimator = LatencyEstimator(0.5, FOCAL, THUMB_WIDTH)
+    for image, stamp, history in panning_views(0.06, 60, centre=math.pi, kept=1.0):
+        estimator.add(image, stamp, history)
+    assert estimator.pairs_used >= estimator.min_pairs
+    assert estimator.tau == pytest.approx(0.06, abs=2 * STEP)
 
 
 def test_a_still_camera_teaches_nothing():
