@@ -90,8 +90,8 @@ prior was wrong: the covariance is computed with it widened to sigma_delta = |de
 lateral position, the heading and delta trade against each other and the pose covariance then says
 so (the jump gate, the precision gate and the fusion weigh it); with markers at several heights
 delta is observed and the pose stays precise. Position std
-(larger eigenvalue of the (x, y) block of s^2 H^-1: the view's geometry, R_fix less the
-calibration's share, which is the same in every view) <= ``max_position_std`` (far or bunched landmarks), or
+(larger eigenvalue of the (x, y) block of s^2 H^-1: the view's pixels and tilt priors, not the
+calibration's share of R_fix, which is the same in every view) <= ``max_position_std`` (far or bunched landmarks), or
 ``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
 prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
 rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior and agree with each
