@@ -136,9 +136,10 @@ came out worse than any fix (a mixed room standing: 35 mm against fixes of 14 mm
 
 Predicted precision (for the pilot and ``station check-layout``): from a pose and T_BC, the
 landmark points that would be detected (in the image with a margin, in front, facing the camera,
-at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the fix covariance
-R_fix (s = sigma_px) the measurement would have; ``best_landmark_view`` scans the head's range
-for the direction with the smallest predicted position std.
+at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the covariance
+sigma_px^2 H^-1 the precision gate would weigh (R_fix without the calibration's share, the same
+from every view); ``best_landmark_view`` scans the head's range for the direction with the
+smallest predicted position std.
 """
 
 from __future__ import annotations
@@ -1079,7 +1080,8 @@ class RobotLocalizer:
     # -- prediction ----------------------------------------------------------------------------
 
     def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
-        """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
+        """(points, covariance of (x, y, theta) or None): the precision a frame from ``pose`` would
+        have, as the gate weighs it (module docstring, Predicted precision)."""
         model = PlanarModel(self.camera, T_BC)
         p = np.array([*pose, 0.0, 0.0])
         X, _, _ = self._visible_points(model, p)
@@ -1090,7 +1092,7 @@ class RobotLocalizer:
         H = Jr.T @ Jr + np.diag(_tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
         if np.linalg.cond(H) > 1e10:
             return len(X), None
-        return len(X), self._fix_covariance(model, p, X, H, self.params.pixel_sigma**2)[0]
+        return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
 
     @property
     def shared_prior(self) -> np.ndarray:
