@@ -90,8 +90,7 @@ prior was wrong: the covariance is computed with it widened to sigma_delta = |de
 lateral position, the heading and delta trade against each other and the pose covariance then says
 so (the jump gate, the precision gate and the fusion weigh it); with markers at several heights
 delta is observed and the pose stays precise. Position std
-(larger eigenvalue of the (x, y) block of s^2 H^-1: the view's pixels and tilt priors, not the
-calibration's share of R_fix, which is the same in every view) <= ``max_position_std`` (far or bunched landmarks), or
+(larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks), or
 ``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
 prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
 rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior and agree with each
@@ -111,35 +110,14 @@ where L and A are the distance walked and the angle turned since the last fix: t
 percent on a NAO, the same all along) grow the std linearly, so P after L metres holds
 k_t^2 L + k_s^2 L^2 and ``position_std()`` says what dead reckoning is worth.
 
-Shared errors. Some errors are the same in every frame: the calibration's (focal scale errors
-s_x, s_y, ``focal_scale_sigma``, and a principal point error d_u, d_v, ``principal_point_sigma`` px
-at VGA; once a self-calibration is applied, its estimate's covariance, agent/self_calibration.py)
-and the camera's pitch offset from T_BC (``pitch_sigma``: a head pitch sensor or camera mount
-offset). The intrinsics move every observed pixel by B k, B_i = [[u_i - c_x, 0, 1, 0],
-[0, v_i - c_y, 0, 1]]; a pitch offset eta moves the fit as a prior mean off by eta. So a fit
-moves by D k with k = (s_x, s_y, d_u, d_v, eta) and
-
-    D = [H^-1 (J^T B | lambda_eps e_eps)]_{xyθ},   lambda_eps = (sigma_px / sigma_pitch)^2,
-
-and R_fix = s^2 [H^-1 H_w H^-1]_{xyθ} + D Sigma_k D^T, H_w = H less the pitch prior (the frame's
-own errors: pixels and roll). Without the second term a sparse room's fixes (one or two markers
-at 2-3 m, a 0.5 % focal error) had NEES 225 (median).
-
-Fusion: a Kalman update with identity measurement, K = P (P + R_fix)^-1, p <- p + K wrap(z - p),
-P <- (I - K) P, then C = p (-) o_capture, and P is grown back to hold D Sigma_k D^T of the fix
-(``_at_least``): fixes share k, and a standing robot's hundred fixes of one view fused as
-independent claimed a precision a hundred times too good (that room: fused pose error 8 mm, std
-0.1 mm). Fixes of one view average their pixel noise, not k. Treating k as a consider parameter
-(Schmidt-Kalman, the cross-covariance kept) was tried and dropped: it weighs views against each
-other to cancel k, and with errors it does not model (blurred corners' bias) the fused pose
-came out worse than any fix (a mixed room standing: 35 mm against fixes of 14 mm).
+and a fix is fused as a Kalman update with identity measurement: K = P (P + R)^-1,
+p <- p + K wrap(z - p), P <- (I - K) P, then C = p (-) o_capture.
 
 Predicted precision (for the pilot and ``station check-layout``): from a pose and T_BC, the
 landmark points that would be detected (in the image with a margin, in front, facing the camera,
-at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the covariance
-sigma_px^2 H^-1 the precision gate would weigh (R_fix without the calibration's share, the same
-from every view); ``best_landmark_view`` scans the head's range for the direction with the
-smallest predicted position std.
+at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the fix covariance
+sigma_px^2 (J^T J)^-1 the measurement would have; ``best_landmark_view`` scans the head's range
+for the direction with the smallest predicted position std.
 """
 
 from __future__ import annotations
@@ -208,8 +186,6 @@ class LocalizationParams:
     aruco_error_correction: float = field(metadata=bounds(0.0, 1.0))  # cv2 errorCorrectionRate: share of the dictionary's correctable bits
     aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
     view_margin_px: float = field(metadata=bounds(0.0, 100.0))  # predicted points this close to the border are not counted
-    focal_scale_sigma: float = field(metadata=bounds(0.0, 0.2))  # relative std of the calibrated focal length
-    principal_point_sigma: float = field(metadata=bounds(0.0, 50.0))  # px at VGA, std of the calibrated principal point
     max_position_std: float = field(metadata=bounds(1e-4, 10.0))  # m: a fix less precise than this is no fix
     max_position_std_with_prior: float = field(metadata=bounds(1e-4, 10.0))  # m: the same with a prior (the fusion weighs it)
 
@@ -228,7 +204,6 @@ class PoseFix:
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
-    shared_covariance: Optional[np.ndarray] = None  # 3 x 3, the part of ``covariance`` every fix shares (module docstring)
 
 
 @dataclass(frozen=True)
@@ -352,15 +327,6 @@ class PlanarModel:
         J = self.f[None, :, None] * (dC[:, :2, :] * z[:, None, None] - X_C[:, :2, None] * dC[:, 2:3, :]) / z[:, None, None] ** 2
         uv = self.f * X_C[:, :2] / z[:, None] + self.c
         return uv, z, J
-
-    def intrinsics_gradient(self, p: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """J^T B (5 x 4) at ``p``: B the pixels' shift per intrinsics error (focal scales s_x, s_y,
-        principal point d_u, d_v; agent/self_calibration.py's c) (module docstring, Shared errors)."""
-        uv, _, J = self.jacobian(p, X)
-        B = np.zeros((len(X), 2, 4))
-        B[:, 0, 0], B[:, 1, 1] = uv[:, 0] - self.c[0], uv[:, 1] - self.c[1]  # du / ds_x, dv / ds_y
-        B[:, 0, 2] = B[:, 1, 3] = 1.0  # du / dd_u, dv / dd_v
-        return J.reshape(-1, 5).T @ B.reshape(-1, 4)
 
     def linear_seed(self, X: np.ndarray, target: np.ndarray) -> Tuple[np.ndarray, float]:
         """(x, y, theta) and |(a, b)| of the linear planar solve (module docstring); raises NoFix when degenerate."""
@@ -641,9 +607,6 @@ class RobotLocalizer:
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
         self._correction: Optional[Pose] = None  # W <- odometry frame
         self.covariance = np.full((3, 3), np.nan)
-        centre = params.principal_point_sigma * camera.width / 640.0  # given at VGA
-        # of the intrinsics' error (s_x, s_y, d_u, d_v); a self-calibration replaces it with its estimate's (station/pilot.py)
-        self.intrinsics_covariance = np.diag([params.focal_scale_sigma**2, params.focal_scale_sigma**2, centre**2, centre**2])
         self.rejected_jumps = 0
         self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
@@ -816,12 +779,10 @@ class RobotLocalizer:
             H[3, 3] += (self.params.pixel_sigma / p[3]) ** 2 - (self.params.pixel_sigma / self._roll_sigma) ** 2
         # per-axis residual variance: sum ||r_i||^2 = N rms^2 over 2N residuals, 3 degrees of freedom used
         residual_var = len(points) * rms**2 / max(1, 2 * len(points) - 3)
-        pixel_var = max(self.params.pixel_sigma**2, residual_var)
-        covariance, shared = self._fix_covariance(model, p, points.X, H, pixel_var)
+        covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
-        view = pixel_var * np.linalg.inv(H)[:2, :2]  # the gate weighs the view, not the calibration (module docstring)
-        std = math.sqrt(np.linalg.eigvalsh(view)[-1])
+        std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
         limit = self.params.max_position_std if prior_p is None else self.params.max_position_std_with_prior
         if std > limit:
             raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
@@ -830,7 +791,7 @@ class RobotLocalizer:
         pose = (float(p[0]), float(p[1]), wrap_angle(float(p[2])))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
-                       roll_sigma=self._roll_sigma, shared_covariance=shared)
+                       roll_sigma=self._roll_sigma)
 
     # -- markers -------------------------------------------------------------------------------
 
@@ -1080,8 +1041,7 @@ class RobotLocalizer:
     # -- prediction ----------------------------------------------------------------------------
 
     def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
-        """(points, covariance of (x, y, theta) or None): the precision a frame from ``pose`` would
-        have, as the gate weighs it (module docstring, Predicted precision)."""
+        """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
         model = PlanarModel(self.camera, T_BC)
         p = np.array([*pose, 0.0, 0.0])
         X, _, _ = self._visible_points(model, p)
@@ -1093,27 +1053,6 @@ class RobotLocalizer:
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
-
-    @property
-    def shared_prior(self) -> np.ndarray:
-        """Sigma_k: covariance of k = (s_x, s_y, d_u, d_v, camera pitch offset) (module docstring, Shared errors)."""
-        Sigma = np.zeros((5, 5))
-        Sigma[:4, :4] = self.intrinsics_covariance
-        Sigma[4, 4] = self.params.pitch_sigma**2
-        return Sigma
-
-    def _fix_covariance(self, model: PlanarModel, p: np.ndarray, X: np.ndarray, H: np.ndarray,
-                        pixel_var: float) -> Tuple[np.ndarray, np.ndarray]:
-        """(R_fix, D Sigma_k D^T) of the fit at ``p`` with normal matrix ``H`` (module docstring, Shared errors)."""
-        pitch_information = (self.params.pixel_sigma / self.params.pitch_sigma) ** 2
-        H_inv = np.linalg.inv(H)
-        own = H.copy()
-        own[4, 4] -= pitch_information  # the pixels and the roll prior: this frame's own errors
-        pitch = np.zeros(5)
-        pitch[4] = pitch_information
-        D = (H_inv @ np.column_stack([model.intrinsics_gradient(p, X), pitch]))[:3]
-        shared = D @ self.shared_prior @ D.T
-        return pixel_var * (H_inv @ own @ H_inv)[:3, :3] + shared, shared
 
     def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
         """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
@@ -1195,8 +1134,6 @@ class RobotLocalizer:
             K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
             pose = np.array(prior) + K @ _difference(fix.pose, prior)
             P = (np.eye(3) - K) @ self.covariance
-            if fix.shared_covariance is not None:
-                P = _at_least(P, fix.shared_covariance)
         self.covariance = 0.5 * (P + P.T)
         fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
         self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
@@ -1229,19 +1166,6 @@ def _group_max(err: np.ndarray, group: np.ndarray) -> np.ndarray:
     out = np.full(inverse.max() + 1 if len(inverse) else 0, -np.inf)
     np.maximum.at(out, inverse, np.nan_to_num(err, nan=np.inf))
     return out
-
-
-def _at_least(P: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """The covariance P grown to hold F along every direction where F is larger (module docstring,
-    Fusion): P^1/2 U max(Lambda, 1) U^T P^T/2, U Lambda U^T = P^-1/2 F P^-T/2."""
-    try:
-        L = np.linalg.cholesky(0.5 * (P + P.T))
-    except np.linalg.LinAlgError:  # not positive definite (a degenerate fix): nothing to grow from
-        return P
-    A = np.linalg.solve(L, np.linalg.solve(L, F).T)  # L^-1 F L^-T (F symmetric)
-    values, U = np.linalg.eigh(0.5 * (A + A.T))
-    LU = L @ U
-    return LU @ np.diag(np.maximum(values, 1.0)) @ LU.T
 
 
 def _mahalanobis(p: np.ndarray, prior: np.ndarray, S: np.ndarray) -> float:

@@ -354,7 +354,6 @@ class Pilot:
         intrinsics the landmark fixes gave (agent/self_calibration.py); from the next frame on."""
         self.camera = self.localizer.camera = self.calibration.camera
         applied = self.calibration.applied
-        self.localizer.intrinsics_covariance = applied.covariance  # what the corrected camera may still be off by
         std = np.sqrt(np.diag(applied.covariance))
         step.outputs.append(CalibrationRecord(t, _flat(self.camera.K), tuple(map(float, applied.c)), tuple(map(float, std)),
                                               applied.frames, applied.rms))
