@@ -305,15 +305,15 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     objects = sorted({r.world["object"] for r in results})
     bare = [r for r in results if r.world.get("bare_naoqi")]
     blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= BLURRED]
-    w = load_randomizer()
+    drawn = load_randomizer()
     lines = [
         f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
-        f"against the stand-in (YUV422, latency, drops, clock offset; {100 * w.bare_naoqi:g} % of them a bare NAOqi: "
+        f"against the stand-in (YUV422, latency, drops, clock offset; {100 * drawn.bare_naoqi:g} % of them a bare NAOqi: "
         "docs/bridge.md), in a random landmark layout, with a random object, start pose "
-        f"({w.start_distance[0]:g}-{w.start_distance[1]:g} m, object up to {math.degrees(w.start_bearing):.0f} deg off the heading), "
-        f"walking errors, sway, a camera calibration off by {100 * w.focal_error:g} % and {w.principal_error:g} px, and a sensor "
-        f"of {w.pixel_sigma[0]:g}-{w.pixel_sigma[1]:g} grey levels of noise, {w.blur_sigma[0]:g}-{w.blur_sigma[1]:g} px of blur "
-        f"and {w.exposure[0]:g}-{w.exposure[1]:g} of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
+        f"({drawn.start_distance[0]:g}-{drawn.start_distance[1]:g} m, object up to {math.degrees(drawn.start_bearing):.0f} deg off the heading), "
+        f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, and a sensor "
+        f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
+        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
         "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
