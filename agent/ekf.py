@@ -30,10 +30,17 @@ Two parametrisations of the same estimate, each a small immutable state class
   Q mapped by J^-1, J = dx/dy. Once std(rho) < inverse_range_switch * rho it becomes a
 * :class:`CartesianState` on (x, P) directly (also the start from a bearing-only first view).
 
+A view from (nearly) the anchor holds no range: its baseline subtends alpha = rho |a - c| at the
+object, and a bearing biased by eps (a shape that is not a cylinder, a silhouette cut at the top)
+moves rho by about eps / |a - c|, the same way from every frame of a standing robot. Below
+``min_parallax`` the view's update leaves rho alone (a Schmidt, or consider, update: the gain's
+rho row is zero; its innovation covariance still holds rho's variance, and the Joseph form is
+exact for that gain); beta and s are updated as usual.
+
 One pure update for both, :func:`iterated_update` (IEKF, Gauss-Newton on the MAP cost)::
 
     H_i = H(m_i),  r_i = wrap(z - h(m_i)) - H_i (m- - m_i),  S_i = H_i P- H_i^T + R,
-    K_i = P- H_i^T S_i^-1,  m_i+1 = m- + K_i r_i,
+    K_i = P- H_i^T S_i^-1 (rows of considered components zeroed),  m_i+1 = m- + K_i r_i,
     NIS = r_i^T S_i^-1 r_i (last i),  P+ = (I - K H) P- (I - K H)^T + K R K^T  (Joseph)
 
 accepted iff NIS <= chi2.ppf(gate_probability, dof).
@@ -106,6 +113,7 @@ class EKFParams:
     min_radius: float = field(metadata=bounds(0.0, 10.0))  # m
     iterations: int = field(metadata=bounds(1, 50))  # Gauss-Newton steps per update; 1 = plain EKF
     inverse_range_switch: float = field(metadata=bounds(0.0, 1.0))  # rho std / rho below which x, P take over
+    min_parallax: float = field(metadata=bounds(0.0, 1.0))  # rad, a view's baseline to the anchor below which rho is kept
     reinitialize_after: int = field(metadata=bounds(1, 100000))  # fewest consistent-alternative views that restart
     reinitialize_fraction: float = field(metadata=bounds(0.0, 10.0))  # restart views per view fused since the start
     reinitialize_max: int = field(metadata=bounds(1, 100000))  # most views a restart ever needs
@@ -331,6 +339,10 @@ class CartesianState:
     def valid(self, m: np.ndarray, cam: np.ndarray) -> bool:
         return _outside(m, cam)
 
+    def considered(self, cam: np.ndarray, params: EKFParams) -> Optional[np.ndarray]:
+        """Components this view must not update: none, once the range is known."""
+        return None
+
     def predicted(self, Q: np.ndarray) -> "CartesianState":
         return CartesianState(self.mean, self.cov + Q)
 
@@ -375,6 +387,12 @@ class InverseRangeState:
         """In front of the anchor at a finite range, a size in (0, 1), the camera outside the object."""
         beta, rho, size = m
         return rho > 0.0 and 0.0 < size < 1.0 and math.hypot(*(rho * (self.anchor - cam[:2]) + (math.cos(beta), math.sin(beta)))) > size
+
+    def considered(self, cam: np.ndarray, params: EKFParams) -> Optional[np.ndarray]:
+        """rho, when the view's baseline to the anchor subtends less than ``min_parallax`` (module docstring)."""
+        if self.mean[1] * math.hypot(*(self.anchor - cam[:2])) < params.min_parallax:
+            return np.array([False, True, False])
+        return None
 
     def predicted(self, Q: np.ndarray) -> "InverseRangeState":
         J_inv = np.linalg.inv(self.jacobian())
@@ -442,11 +460,13 @@ def iterated_update(
     model: Callable[[np.ndarray], Tuple[np.ndarray, np.ndarray]],
     valid: Callable[[np.ndarray], bool],
     iterations: int,
+    considered: Optional[np.ndarray] = None,
 ) -> Optional[IteratedStep]:
     """Iterated EKF update of (mean, cov) by z (bearing first, wrapped) with noise R (module docstring).
 
     ``model(m)`` gives (h(m), dh/dm); an iterate that is not finite or not ``valid`` stops the
     iteration at the last good one. None when even the first is not, or the posterior is degenerate.
+    The components where ``considered`` is True are not updated (their gain rows are zero).
     """
     step = None
     m_lin = mean
@@ -455,6 +475,8 @@ def iterated_update(
         residual = _wrapped(z - h) - H @ (mean - m_lin)
         S_inv = _inverse_spd(H @ cov @ H.T + R)
         gain = cov @ H.T @ S_inv
+        if considered is not None:
+            gain[considered] = 0.0
         m_next = mean + gain @ residual
         if not (np.all(np.isfinite(m_next)) and valid(m_next)):
             break
@@ -596,7 +618,8 @@ class ObjectEKF:
         dof = len(z)
         width_model = self.params.width_model
         return iterated_update(
-            state.mean, state.cov, z, R, lambda m: state.model(m, cam, dof, width_model), lambda m: state.valid(m, cam), self.params.iterations
+            state.mean, state.cov, z, R, lambda m: state.model(m, cam, dof, width_model), lambda m: state.valid(m, cam), self.params.iterations,
+            state.considered(cam, self.params),
         )
 
     def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
