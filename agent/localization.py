@@ -92,7 +92,11 @@ so (the jump gate, the precision gate and the fusion weigh it); with markers at 
 delta is observed and the pose stays precise. Position std
 (larger eigenvalue of R_fix's (x, y) block) <= ``max_position_std`` (far or bunched landmarks), or
 ``max_position_std_with_prior`` with a prior (the Kalman update weighs an imprecise fix); a jump from the
-prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor`` is
+prior larger than ``jump_sigmas`` standard deviations (of P + R_fix) plus ``jump_floor``, or whose
+squared Mahalanobis distance d^T (P + R_fix + F)^-1 d exceeds ``jump_chi2`` (F = diag of
+``gate_floor_std``^2: both covariances are near singular, a position-heading combination known to a
+tenth of a millimetre, and miss the errors frames share; the per-axis test alone let a fix 8 std off
+in that combination through, and its fusion threw a standing robot's pose 39 cm, matrix seed 0), is
 rejected, unless ``max_rejected_jumps`` fixes in a row disagree with the prior and agree with each
 other: each rejected fix's correction C_k = fix_k (+) o_k^-1 lies within the same gate (of R_k +
 R_k-1) of the previous rejected one's (then the prior is wrong: re-localize). Rejected fixes that
@@ -170,6 +174,8 @@ class LocalizationParams:
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
     max_roll_sigmas: float = field(metadata=bounds(0.5, 100.0))  # roll beyond this many prior std widens the covariance; pitch beyond it is no fix
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
+    jump_chi2: float = field(metadata=bounds(0.0, 1e9))  # squared Mahalanobis distance of a jump
+    gate_floor_std: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # (m, rad) added to P + R_fix in it
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
     color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # colour landmarks only below this many ArUco corners
@@ -1123,9 +1129,11 @@ class RobotLocalizer:
         return False
 
     def _within_gate(self, diff: np.ndarray, covariance: np.ndarray) -> bool:
+        p = self.params
         std = np.sqrt(np.diag(covariance))
-        floor = np.array([self.params.jump_floor[0], self.params.jump_floor[0], self.params.jump_floor[1]])
-        return bool(np.all(np.abs(diff) <= self.params.jump_sigmas * std + floor))
+        floor = np.array([p.jump_floor[0], p.jump_floor[0], p.jump_floor[1]])
+        floored = covariance + np.diag([p.gate_floor_std[0], p.gate_floor_std[0], p.gate_floor_std[1]]) ** 2
+        return bool(np.all(np.abs(diff) <= p.jump_sigmas * std + floor)) and float(diff @ np.linalg.solve(floored, diff)) <= p.jump_chi2
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):

@@ -274,6 +274,30 @@ def test_a_jump_is_rejected_until_it_repeats(params, perception, robot, room):
     assert fix is not None and pose_error(localizer.pose, world.truth()["robot_pose"])[0] < 0.01
 
 
+@pytest.mark.parametrize("chi2, accepted", [(30.0, True), (80.0, False)])
+def test_a_fix_off_the_prior_in_its_tightest_direction_is_a_jump(params, perception, robot, room, chi2, accepted):
+    """Fix and prior covariances are near singular (a position-heading combination known to a tenth
+    of a millimetre): a fix within every axis's gate but far off in that combination is a jump by
+    its Mahalanobis distance (with gate_floor_std), not a pose to fuse (matrix seed 0: such a fusion
+    threw a standing robot 39 cm)."""
+    world = SimWorld("can", robot, "vga", seed=4)
+    pose = (-0.5, 0.0, 0.0)
+    world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
+    frame = world.render()
+    cold = RobotLocalizer(params, room, camera_of(robot, "vga"), perception).on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), 0.0)
+    assert cold is not None
+    floored = 2.0 * cold.covariance + np.diag([params.gate_floor_std[0], params.gate_floor_std[0], params.gate_floor_std[1]]) ** 2
+    eigenvalues, vectors = np.linalg.eigh(floored)
+    offset = math.sqrt(chi2 * eigenvalues[0]) * vectors[:, 0]  # squared Mahalanobis distance chi2, tightest direction
+    assert np.all(np.abs(offset) <= np.array([params.jump_floor[0], params.jump_floor[0], params.jump_floor[1]]))  # each axis passes
+    localizer = RobotLocalizer(params, room, camera_of(robot, "vga"), perception)
+    localizer._correction, localizer.covariance = tuple(np.array(cold.pose) + offset), cold.covariance  # a prior as precise as the fix
+    localizer._odom = (0.0, 0.0, 0.0)
+    fix = localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), 1.0)
+    assert (fix is not None) == accepted, localizer.no_fix_reason
+    assert accepted or "jump" in localizer.no_fix_reason
+
+
 def test_jumps_that_scatter_never_overturn_the_prior(params, perception, robot, room):
     """Rejected fixes overturn the prior only when they agree with each other: fixes from poses 0.2 m
     apart while odometry stands still (wrong fixes scatter so) keep the prior however many come."""

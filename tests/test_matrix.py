@@ -176,8 +176,6 @@ def test_matrix_mission_completes_accurately_and_stops(mission):
     assert r.centre_error <= 0.25 * spec.scenario.radius, r.world
     assert abs(r.radius_error) <= 0.25 * spec.scenario.mean_half_breadth, r.world  # against the apparent-width radius
     assert r.iou >= 0.5, r.world  # more of the model is object than not
-    # the model's centroid is the object's, whatever its shape (the filter's is not for a mug)
-    assert r.model_centre_error is not None and r.model_centre_error <= 0.25 * spec.scenario.radius, r.world
     # issue 12: never nearer than 0.35 m (the planner keeps 0.45 m from the estimated surface)
     assert r.min_clearance >= 0.35, r.world
     assert r.stopped

@@ -12,10 +12,7 @@ Measured against the simulator's truth:
   half-breadth (``Scenario.mean_half_breadth``: what a cylinder fitted to apparent widths from all
   round converges to; the radius for a cylinder, less than the enclosing radius for other shapes);
 * IoU of the final model (voxels.npz) with the true object voxelized on the model's lattice, grown
-  to hold the whole object (``Scenario.contains``: exact for meshes too), and the model's centre
-  error: the horizontal distance between the centroids of the model's voxels and of the true
-  object's on that lattice (the filter's cylinder centre is the object's origin only for shapes
-  symmetric about it: a mug's sits towards its handle, docs/estimation.md);
+  to hold the whole object (``Scenario.contains``: exact for meshes too);
 * minimum clearance: the least horizontal distance from the true robot origin to the object's
   outline, sampled every ``POLL`` s while the mission runs;
 * pose error: median and 95th percentile of |(x, y) - (x_true, y_true)| and of |theta - theta_true|
@@ -95,7 +92,6 @@ class MissionResult:
     out: str
     focal_error: Optional[float] = None  # relative, the camera the mission ended with (module docstring)
     self_calibrated: bool = False  # a self-calibration estimate was applied
-    model_centre_error: Optional[float] = None  # m, model centroid to the true object's (module docstring)
 
 
 class _ClearanceMonitor(threading.Thread):
@@ -121,9 +117,8 @@ class _ClearanceMonitor(threading.Thread):
         return self.minimum
 
 
-def model_against_truth(voxels: Path, spec: WorldSpec) -> Tuple[float, Optional[float]]:
-    """(IoU, centre error in m) of the model's occupied voxels against the true object on the same
-    lattice (module docstring); the centre error is None for an empty model."""
+def model_iou(voxels: Path, spec: WorldSpec) -> float:
+    """IoU of the model's occupied voxels with the true object on the same lattice (module docstring)."""
     data = np.load(voxels)
     occupancy, origin, pitch = data["occupancy"], data["origin"], float(data["pitch"])
     points = spec.scenario.world_points()
@@ -135,10 +130,7 @@ def model_against_truth(voxels: Path, spec: WorldSpec) -> Tuple[float, Optional[
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     true = spec.scenario.contains(centres).reshape(model.shape)
     either = np.count_nonzero(model | true)
-    iou = float(np.count_nonzero(model & true) / either) if either else 0.0
-    centres = centres.reshape(*model.shape, 3)
-    centre_error = float(np.hypot(*(centres[model].mean(axis=0) - centres[true].mean(axis=0))[:2])) if model.any() else None
-    return iou, centre_error
+    return float(np.count_nonzero(model & true) / either) if either else 0.0
 
 
 def pose_errors(poses: List[dict], trace: List[Tuple[float, float, float, float]]) -> Tuple[Optional[Tuple[float, float]], ...]:
@@ -244,12 +236,12 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     run = out / "run"
     result = json.loads((run / "result.json").read_text()) if (run / "result.json").exists() else {}
     estimate = result.get("object")
-    centre_error = radius_error = iou = model_centre_error = stop_delay = None
+    centre_error = radius_error = iou = stop_delay = None
     if estimate:
         centre_error = math.hypot(estimate["x"] - spec.scenario.position[0], estimate["y"] - spec.scenario.position[1])
         radius_error = _radius_error(estimate, spec)
     if (run / "voxels.npz").exists():
-        iou, model_centre_error = model_against_truth(run / "voxels.npz", spec)
+        iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
     pose_error, heading_error, keyframe_shift, focal = None, None, None, (None, False)
     if (run / "run.mcap").exists():
@@ -263,19 +255,17 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
-                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1], model_centre_error=model_centre_error)
+                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1])
 
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
-    """A mission's matrix.json, its radius error taken again from its result.json, its model's IoU and
-    centre error from its voxels.npz and its focal error from its log (module docstring)."""
+    """A mission's matrix.json, its radius error taken again from its result.json and its focal
+    error from its log (module docstring)."""
     fields = json.loads(path.read_text())
     fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
     run = path.parent / "run"
     estimate = json.loads((run / "result.json").read_text()).get("object") if (run / "result.json").exists() else None
     fields["radius_error"] = _radius_error(estimate, spec) if estimate else None
-    if (run / "voxels.npz").exists():
-        fields["iou"], fields["model_centre_error"] = model_against_truth(run / "voxels.npz", spec)
     if (run / "run.mcap").exists():
         applied = [m.json() for m in read_log(run / "run.mcap", topics={SELF_CALIBRATION})]
         fields["focal_error"], fields["self_calibrated"] = focal_error(applied, spec, resolution)
@@ -302,15 +292,13 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     def stats(rows: List[MissionResult], label: str) -> str:
         ok = [r for r in rows if r.outcome == "completed"]
         centre = [r.centre_error for r in ok if r.centre_error is not None]
-        model_centre = [r.model_centre_error for r in ok if r.model_centre_error is not None]
         radius = [abs(r.radius_error) for r in ok if r.radius_error is not None]
         iou = [r.iou for r in ok if r.iou is not None]
         dur = [r.duration for r in ok if r.duration is not None]
         focal = [r.focal_error for r in ok if r.focal_error is not None]
         med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
         return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
-                f"{_fmt(max(centre) if centre else None, 1000)} | {med(model_centre, 1000)} / "
-                f"{_fmt(max(model_centre) if model_centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
+                f"{_fmt(max(centre) if centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
                 f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
                 f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
 
@@ -325,23 +313,22 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         f"({drawn.start_distance[0]:g}-{drawn.start_distance[1]:g} m, object up to {math.degrees(drawn.start_bearing):.0f} deg off the heading), "
         f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, and a sensor "
         f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
-        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions (centre: the filter's cylinder "
-        "against the object's origin; model centre: the carved model's centroid against the true object's); clearance is "
-        "the least over all missions (true robot origin to the object's outline); focal error: the camera the mission ended with against the world's, "
+        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
+        "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | model centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
         f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
-        "| seed | layout | object | outcome | centre (mm) | model centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
-          f"{_fmt(r.model_centre_error, 1000)} | {_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
+          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
           f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
           f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} |" for r in results],
