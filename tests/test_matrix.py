@@ -173,7 +173,8 @@ def test_matrix_mission_completes_accurately_and_stops(mission):
     # a quarter of the object's radius (the smallest enclosing cylinder's): the estimated centre lies
     # well inside the object; the estimated cylinder is the object's size seen from all round (its
     # mean half-breadth, tools/matrix.py), for any shape
-    assert r.centre_error <= 0.25 * spec.scenario.radius, r.world
+    assert r.centre_error <= 0.25 * spec.scenario.radius, r.world  # the carved model's centroid (docs/result.md)
+    assert r.filter_centre_error <= 0.25 * spec.scenario.radius, r.world
     assert abs(r.radius_error) <= 0.25 * spec.scenario.mean_half_breadth, r.world  # against the apparent-width radius
     assert r.iou >= 0.5, r.world  # more of the model is object than not
     # issue 12: never nearer than 0.35 m (the planner keeps 0.45 m from the estimated surface)

@@ -20,6 +20,7 @@ from station.result import (
     EXIT_FAILURE,
     EXIT_SUCCESS,
     EXIT_TIME_LIMIT,
+    build_result,
     exit_code,
     log_figures,
     status_of,
@@ -105,3 +106,21 @@ def test_report_writes_every_figure(synthetic_log, tmp_path):
     written = write_report(synthetic_log, tmp_path / "report", progress=False)
     assert sorted(p.name for p in written) == ["cameras.png", "errors.png", "progress.png", "trajectory.png"]
     assert all(p.stat().st_size > 10_000 for p in written)
+
+
+@pytest.mark.parametrize("outcome, source", [(Outcome.COMPLETED.value, "model"), (Outcome.TIME_LIMIT.value, "filter")])
+def test_the_result_centre_is_the_models_once_completed_and_the_filters_kept_beside(outcome, source, tmp_path):
+    """A completed mission's centre is its carved model's centroid (a model from fewer views than a
+    completed mission's is not trusted for it); the filter's centre, radius and covariance stay."""
+    from agent.carving import VoxelCarver, load_carving_params
+    from station.run import RunSummary
+
+    carver = VoxelCarver((0.1, 0.1, 0.0), (0.3, 0.3, 0.2), 0.02, load_carving_params())  # no view: the whole box
+    x, P = np.array([0.25, 0.18, 0.06]), np.diag([1e-5, 1e-5, 1e-6])
+    summary = RunSummary(outcome, "", outcome == Outcome.COMPLETED.value, 10, 10, 1.0, carver, None, x, P)
+    estimate = build_result(summary, tmp_path / "missing.mcap", {}, "qvga")["object"]
+    centre = (estimate["x"], estimate["y"])
+    expected = carver.metrics().centroid[:2] if source == "model" else (0.25, 0.18)
+    assert estimate["centre_source"] == source and centre == pytest.approx(expected)
+    assert (estimate["filter_x"], estimate["filter_y"], estimate["r"]) == (0.25, 0.18, 0.06)
+    assert estimate["covariance"] == P.tolist()

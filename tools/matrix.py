@@ -8,7 +8,10 @@ mission against it as a separate process (its bridge drives the stand-in with YU
 from a bare one), with the layout as its landmark map and the configured (not the true) camera.
 Measured against the simulator's truth:
 
-* centre error |(x, y) - (x_true, y_true)| and radius error r - r_true, r_true the object's mean
+* centre error |(x, y) - (x_true, y_true)| of the result's centre (the carved model's centroid once
+  completed, docs/result.md) and of the filter's beside it, (x_true, y_true) the object's origin
+  (its axis for a cylinder, a box or the mug, its bounding box's centre for a mesh); radius
+  error r - r_true, r_true the object's mean
   half-breadth (``Scenario.mean_half_breadth``: what a cylinder fitted to apparent widths from all
   round converges to; the radius for a cylinder, less than the enclosing radius for other shapes);
 * IoU of the final model (voxels.npz) with the true object voxelized on the model's lattice, grown
@@ -92,6 +95,7 @@ class MissionResult:
     out: str
     focal_error: Optional[float] = None  # relative, the camera the mission ended with (module docstring)
     self_calibrated: bool = False  # a self-calibration estimate was applied
+    filter_centre_error: Optional[float] = None  # m, the filter's centre (module docstring)
 
 
 class _ClearanceMonitor(threading.Thread):
@@ -236,9 +240,9 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     run = out / "run"
     result = json.loads((run / "result.json").read_text()) if (run / "result.json").exists() else {}
     estimate = result.get("object")
-    centre_error = radius_error = iou = stop_delay = None
+    centre_error = filter_centre_error = radius_error = iou = stop_delay = None
     if estimate:
-        centre_error = math.hypot(estimate["x"] - spec.scenario.position[0], estimate["y"] - spec.scenario.position[1])
+        centre_error, filter_centre_error = _centre_errors(estimate, spec)
         radius_error = _radius_error(estimate, spec)
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
@@ -255,21 +259,30 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
-                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1])
+                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1], filter_centre_error=filter_centre_error)
 
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
-    """A mission's matrix.json, its radius error taken again from its result.json and its focal
-    error from its log (module docstring)."""
+    """A mission's matrix.json, its centre and radius errors taken again from its result.json and its
+    focal error from its log (module docstring)."""
     fields = json.loads(path.read_text())
     fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
     run = path.parent / "run"
     estimate = json.loads((run / "result.json").read_text()).get("object") if (run / "result.json").exists() else None
     fields["radius_error"] = _radius_error(estimate, spec) if estimate else None
+    fields["centre_error"], fields["filter_centre_error"] = _centre_errors(estimate, spec) if estimate else (None, None)
     if (run / "run.mcap").exists():
         applied = [m.json() for m in read_log(run / "run.mcap", topics={SELF_CALIBRATION})]
         fields["focal_error"], fields["self_calibrated"] = focal_error(applied, spec, resolution)
     return MissionResult(**fields)
+
+
+def _centre_errors(estimate: dict, spec: WorldSpec) -> Tuple[float, float]:
+    """(result's, filter's) distance to the object's origin; a result.json from before the model's
+    centre (no ``filter_x``) has the filter's as its centre."""
+    x0, y0 = spec.scenario.position
+    filter_xy = (estimate.get("filter_x", estimate["x"]), estimate.get("filter_y", estimate["y"]))
+    return math.hypot(estimate["x"] - x0, estimate["y"] - y0), math.hypot(filter_xy[0] - x0, filter_xy[1] - y0)
 
 
 def _radius_error(estimate: dict, spec: WorldSpec) -> float:
@@ -292,13 +305,15 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     def stats(rows: List[MissionResult], label: str) -> str:
         ok = [r for r in rows if r.outcome == "completed"]
         centre = [r.centre_error for r in ok if r.centre_error is not None]
+        filter_centre = [r.filter_centre_error for r in ok if r.filter_centre_error is not None]
         radius = [abs(r.radius_error) for r in ok if r.radius_error is not None]
         iou = [r.iou for r in ok if r.iou is not None]
         dur = [r.duration for r in ok if r.duration is not None]
         focal = [r.focal_error for r in ok if r.focal_error is not None]
         med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
         return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
-                f"{_fmt(max(centre) if centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
+                f"{_fmt(max(centre) if centre else None, 1000)} | {med(filter_centre, 1000)} / "
+                f"{_fmt(max(filter_centre) if filter_centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
                 f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
                 f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
 
@@ -313,22 +328,23 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         f"({drawn.start_distance[0]:g}-{drawn.start_distance[1]:g} m, object up to {math.degrees(drawn.start_bearing):.0f} deg off the heading), "
         f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, and a sensor "
         f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
-        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions; clearance is the least over all missions (true robot "
+        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions (centre: the result's, the carved model's "
+        "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
         "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | filter centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
         f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
-        "| seed | layout | object | outcome | centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
-          f"{_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
+          f"{_fmt(r.filter_centre_error, 1000)} | {_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
           f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
           f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} |" for r in results],
