@@ -1114,12 +1114,11 @@ class RobotLocalizer:
     # -- fusion --------------------------------------------------------------------------------
 
     def _accept_jump(self, prior: Pose, fix: PoseFix, odom: Pose) -> bool:
-        if self._within_gate(_difference(fix.pose, prior), self.covariance + fix.covariance):
+        if self._within_gate(fix.pose, prior, self.covariance + fix.covariance):
             self.rejected_jumps, self._rejected = 0, None
             return True
         correction = compose(fix.pose, relative(odom, (0.0, 0.0, 0.0)))
-        agrees = self._rejected is not None and self._within_gate(
-            _difference(correction, self._rejected[0]), self._rejected[1] + fix.covariance)
+        agrees = self._rejected is not None and self._within_gate(correction, self._rejected[0], self._rejected[1] + fix.covariance)
         self.rejected_jumps = self.rejected_jumps + 1 if agrees else 1
         self._rejected = (correction, fix.covariance)
         if self.rejected_jumps >= self.params.max_rejected_jumps:
@@ -1128,12 +1127,14 @@ class RobotLocalizer:
             return True
         return False
 
-    def _within_gate(self, diff: np.ndarray, covariance: np.ndarray) -> bool:
+    def _within_gate(self, pose: Pose, prior: Pose, covariance: np.ndarray) -> bool:
+        """``pose`` is no jump from ``prior`` (module docstring): within the per-axis gate and the Mahalanobis one."""
         p = self.params
-        std = np.sqrt(np.diag(covariance))
         floor = np.array([p.jump_floor[0], p.jump_floor[0], p.jump_floor[1]])
+        if not np.all(np.abs(_difference(pose, prior)) <= p.jump_sigmas * np.sqrt(np.diag(covariance)) + floor):
+            return False
         floored = covariance + np.diag([p.gate_floor_std[0], p.gate_floor_std[0], p.gate_floor_std[1]]) ** 2
-        return bool(np.all(np.abs(diff) <= p.jump_sigmas * std + floor)) and float(diff @ np.linalg.solve(floored, diff)) <= p.jump_chi2
+        return _mahalanobis(np.asarray(pose), prior, floored) <= p.jump_chi2
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):

@@ -4,12 +4,8 @@ Everything but the outcome and the model comes from the run log, so the same fun
 live run and a log read afterwards. Path length is the odometry's (sum of |p_k+1 - p_k| over the
 received states): smoother than the landmark-corrected poses, whose jitter would add up.
 The object's centre: the carved model's centroid (x, y) when the mission completed with a model,
-else the filter's. The filter's cylinder is the one the views' widths agree on, which a shape that
-is not a cylinder pulls off its centre (a mug's towards its handle) and which the last few seconds
-of views set after a restart; the model intersects every keyframe's silhouette. Over the 40 worlds
-of the matrix at 32db209 the centroid was 1.2 mm from the object's centre (median; 12.3 mm at most)
-against the filter's 3.1 mm (23.0 mm), the figure 1.1 against 11.3 mm (docs/benchmarks.md). The
-radius and the covariance stay the filter's. Against simulator truth (when the log has it)::
+else the filter's; the radius and the covariance stay the filter's (why, and the matrix's figures:
+docs/result.md). Against simulator truth (when the log has it)::
 
     centre_error = |(x, y) - (x_true, y_true)|,   radius_error = r - r_true
 
