@@ -33,7 +33,7 @@ at most ``max_roll_sigma``): while walking
 the torso sways, rolls and bobs by more than the kinematics report, and a bundle adjustment over
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
 mission). Nor are fixes made while the head turns, or within ``head_settle`` s after it turned
-faster than ``head_still_speed``: the head angles read for a frame are those of its capture
+faster than ``head_still_speed`` or after the first frame (docs/landmarks.md): the head angles read for a frame are those of its capture
 stamp, and a stamp a few milliseconds off at the head's speed tilts the fix's camera by a few
 milliradians, which the pitch-held bundle adjustment takes for a vertical focal or principal point
 error (measured in the matrix: two such fixes of eight, 2.3 and 0.8 px off in v, put the vertical
@@ -136,7 +136,7 @@ class SelfCalibration:
         self._new = 0
         self._last_stamp = -np.inf
         self._head: Optional[Tuple[float, float, float]] = None  # (stamp, yaw, pitch) of the last frame
-        self._head_moved = -np.inf  # stamp of the last frame the head turned at
+        self._head_moved = -np.inf  # stamp of the last frame the head turned at (or of the first frame)
 
     @property
     def camera(self) -> CameraModel:
@@ -152,7 +152,9 @@ class SelfCalibration:
     def on_head(self, yaw: float, pitch: float, stamp: float) -> None:
         """A frame's head angles at its capture ``stamp`` (every frame, with a fix or not; an older stamp is ignored)."""
         last = self._head
-        if last is not None:
+        if last is None:
+            self._head_moved = stamp  # the first reading starts the settle clock: nothing says the head was still before it
+        else:
             if not stamp > last[0]:
                 return
             speed = max(abs(yaw - last[1]), abs(pitch - last[2])) / (stamp - last[0])
