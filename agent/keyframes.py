@@ -47,6 +47,7 @@ from agent.camera import CameraModel
 from nao_core.geometry import wrap_angle
 
 _MIN_CONTRAST = 8.0  # grey levels: below this a contour's sharpness is not measurable
+_PAD = 6  # px around the silhouette's bounding box: beyond its bands' 4 px and the gradient's 1
 
 
 def pose_quality(covariance: np.ndarray, distance: float, sigma_0: float) -> float:
@@ -67,7 +68,11 @@ def silhouette_quality(mask: np.ndarray, image: Optional[np.ndarray], cut_weight
     q_sil = cut_weight if (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()) else 1.0
     if image is None:
         return q_sil
-    grey = np.asarray(image, dtype=np.uint8)
+    # every step below reaches at most 4 px from the silhouette: work on its padded bounding box
+    x, y, w, h = cv2.boundingRect(m)
+    window = (slice(max(0, y - _PAD), y + h + _PAD), slice(max(0, x - _PAD), x + w + _PAD))
+    m = m[window]
+    grey = np.asarray(image, dtype=np.uint8)[window]
     grey = cv2.cvtColor(grey, cv2.COLOR_BGR2GRAY) if grey.ndim == 3 else grey
     grey = grey.astype(np.float32)
     disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))  # noqa: E731

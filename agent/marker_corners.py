@@ -58,7 +58,7 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, cells: int) -> np.ndar
         return corners
     centre = corners.mean(axis=0)
     s = np.arange(-reach, reach + 1e-9, STEP)  # profile offsets across an edge
-    lines = []
+    points, normals = [], []  # per edge: the samples m_j, the outward unit normal n_k
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
         length = float(np.linalg.norm(b - a))
@@ -68,16 +68,19 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, cells: int) -> np.ndar
             n = -n  # outward
         margin = min(0.4, (reach + 1.0) / length)
         t = np.linspace(margin, 1.0 - margin, max(MIN_EDGE_POINTS, int((1.0 - 2.0 * margin) * length / SAMPLE_SPACING)))
-        points = a + t[:, None] * (b - a)  # m_j
-        grid = points[:, None, :] + s[None, :, None] * n  # samples x steps x 2
-        profile = cv2.remap(gray, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
-                            cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-        edge = _steepest(profile, s)
-        ok = np.isfinite(edge)
-        if ok.sum() < MIN_EDGE_POINTS:
+        points.append(a + t[:, None] * (b - a))
+        normals.append(np.broadcast_to(n, points[-1].shape))
+    samples, outward = np.concatenate(points), np.concatenate(normals)
+    grid = samples[:, None, :] + s[None, :, None] * outward[:, None, :]  # samples of all four edges x steps x 2
+    profile = cv2.remap(gray, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
+                        cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    e = samples + _steepest(profile, s)[:, None] * outward  # e_j
+    lines = []
+    for edge in np.split(e, np.cumsum([len(p) for p in points])[:-1]):
+        edge = edge[np.isfinite(edge[:, 0])]
+        if len(edge) < MIN_EDGE_POINTS:
             return corners
-        e = points[ok] + edge[ok, None] * n
-        vx, vy, x0, y0 = cv2.fitLine(e.astype(np.float32), cv2.DIST_L2, 0, 0.01, 0.01).ravel()
+        vx, vy, x0, y0 = cv2.fitLine(edge.astype(np.float32), cv2.DIST_L2, 0, 0.01, 0.01).ravel()
         normal = np.array([-vy, vx], dtype=np.float64)
         lines.append((normal, float(normal @ np.array([x0, y0]))))
     refined = np.empty_like(corners)
