@@ -33,11 +33,11 @@ at most ``max_roll_sigma``): while walking
 the torso sways, rolls and bobs by more than the kinematics report, and a bundle adjustment over
 walking fixes turns that into a calibration error (measured: the focal scales drifted by 1 % over a
 mission). Nor are fixes made while the head turns, or within ``head_settle`` s after it turned
-faster than ``head_still_speed`` or after the first frame (docs/landmarks.md): the head angles read for a frame are those of its capture
-stamp, and a stamp a few milliseconds off at the head's speed tilts the fix's camera by a few
-milliradians, which the pitch-held bundle adjustment takes for a vertical focal or principal point
-error (measured in the matrix: two such fixes of eight, 2.3 and 0.8 px off in v, put the vertical
-focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and
+faster than ``head_still_speed`` or after the first frame (docs/landmarks.md): the head angles
+read for a frame are those of its capture stamp, and a stamp a few milliseconds off at the head's
+speed tilts the fix's camera by a few milliradians, which the pitch-held bundle adjustment takes
+for a vertical focal or principal point error (measured in the matrix: two such fixes of eight,
+2.3 and 0.8 px off in v, put the vertical focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and
 localizes; when it finds the object at once, it stands at the start of ACTIVE for at most
 ``standstill`` s with the head alternating between the object and, ``standstill_dwell`` s each
 (time to get there and settle), the ``standstill_views`` head directions predicted from its pose
