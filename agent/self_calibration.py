@@ -25,6 +25,16 @@ may be off by). The estimate's covariance is s^2 S^-1, s^2 the residual variance
 principal point shift across the image is nearly a turn of the robot (d_u is held mostly by its
 prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
+A fix can also be wrong in a way the intrinsics absorb (its camera tilted by a head angle read a
+few milliseconds off): its RMS stays low, but the others disagree with it. Its influence, the
+squared Mahalanobis distance the estimate moves by when it is left out (one Gauss-Newton step from
+the solution, S_k and b_k its terms of S and b),
+
+    c_-k - c = (S - S_k)^-1 (b_k - b),   D_k = (c_-k - c)^T (S - S_k) (c_-k - c) / s^2,
+
+is measured in the covariance of the estimate without it, so a fix that alone constrains some
+direction (S - S_k small there) is not accused for moving it. The fix of largest D_k above
+``max_influence`` is dropped and the fit repeated (at most three rounds in all).
 
 A fix is stored when it has ``min_points`` points of ``min_landmarks`` landmarks or more: four
 balls, or two markers (one marker's range comes from its size, which a focal error scales alike,
@@ -82,6 +92,7 @@ class SelfCalibrationParams:
     update_every: int = field(metadata=bounds(1, 1000))  # new fixes between two estimates
     max_scale_std: float = field(metadata=bounds(1e-5, 0.2))  # the estimate is applied when its focal scales are this sure
     outlier_rms_ratio: float = field(metadata=bounds(1.0, 100.0))  # a fix this many times the median RMS is dropped
+    max_influence: float = field(metadata=bounds(1.0, 1e6))  # ... and the fix whose removal moves c by more (D_k) than this
     iterations: int = field(metadata=bounds(1, 100))
     standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
     standstill_patience: float = field(metadata=bounds(0.0, 60.0))  # s: ... and no longer than this without a fix to store
@@ -197,8 +208,10 @@ class SelfCalibration:
             result = self._solve(fixes)
             if result is None:
                 return None
-            calibration, rms = result
+            calibration, rms, influence = result
             keep = rms <= self.params.outlier_rms_ratio * max(float(np.median(rms)), 1e-3)
+            if keep.all() and influence.max() > self.params.max_influence:
+                keep[np.argmax(influence)] = False  # the one fix the others disagree with most
             if keep.all():
                 return calibration
             fixes = [f for f, k in zip(fixes, keep) if k]
@@ -225,12 +238,13 @@ class SelfCalibration:
                     g[3] += w2 * pose[3]
                     B = Jp.T @ Jc
                     A_inv = np.linalg.inv(A)
-                    S += Jc.T @ Jc - B.T @ A_inv @ B
-                    b += Jc.T @ r - B.T @ A_inv @ g
-                    blocks.append((A_inv, B, g))
+                    S_k, b_k = Jc.T @ Jc - B.T @ A_inv @ B, Jc.T @ r - B.T @ A_inv @ g
+                    S += S_k
+                    b += b_k
+                    blocks.append((A_inv, B, g, S_k, b_k))
                 dc = -np.linalg.solve(S, b)
                 c += dc
-                for pose, (A_inv, B, g) in zip(poses, blocks):
+                for pose, (A_inv, B, g, _, _) in zip(poses, blocks):
                     pose += -A_inv @ (g + B @ dc)
                 if np.abs(dc).max() < 1e-7:
                     break
@@ -245,7 +259,15 @@ class SelfCalibration:
         dof = max(1, n - 4 * len(fixes) - 4)
         s2 = max(p.pixel_sigma**2, float(sum(np.sum(r**2) for r in residuals)) / dof)
         covariance = s2 * np.linalg.inv(S)
-        return Calibration(c, covariance, len(fixes), float(np.sqrt(np.mean(np.concatenate(residuals) ** 2) * 2.0))), rms
+        influence = np.zeros(len(fixes))
+        for k, (*_, S_k, b_k) in enumerate(blocks):  # D_k (module docstring), at the last linearization
+            try:
+                shift = np.linalg.solve(S - S_k, b_k - b)
+            except np.linalg.LinAlgError:
+                continue
+            influence[k] = float(shift @ (S - S_k) @ shift) / s2
+        calibration = Calibration(c, covariance, len(fixes), float(np.sqrt(np.mean(np.concatenate(residuals) ** 2) * 2.0)))
+        return calibration, rms, influence
 
     @staticmethod
     def _residual(camera: CameraModel, fix: _Fix, pose: np.ndarray) -> np.ndarray:

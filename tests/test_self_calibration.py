@@ -145,6 +145,25 @@ def test_a_wrongly_associated_fix_is_dropped_not_believed():
     assert np.allclose(estimate.c[[0, 1]], good.c[[0, 1]], atol=5e-4)
 
 
+def test_a_tilted_fix_the_intrinsics_absorb_is_dropped_by_its_influence():
+    """One fix whose camera looked 7 mrad lower than its T_BC says (its head angle read off its capture
+    time: matrix seed 6's first frame), all its points 4 px low. A principal point shift explains
+    that, so its RMS passes; left in, it moves the estimate by many std; its influence finds it."""
+    calibration, _ = mission(np.zeros(4), 12)
+    good = calibration.solve()
+    fix = calibration.fixes[0]
+    calibration.fixes[0] = dataclasses.replace(fix, u=fix.u + np.array([0.0, 4.0]))
+    believed = SelfCalibration(dataclasses.replace(PARAMS, max_influence=1e6), CAMERA)
+    believed.fixes = list(calibration.fixes)
+    biased = believed.solve()
+    assert biased is not None and biased.frames == good.frames  # its RMS did not give it away
+    std = np.sqrt(np.diag(biased.covariance))
+    assert np.max(np.abs(biased.c[[1, 3]] - good.c[[1, 3]]) / std[[1, 3]]) > 5.0, (biased.c, good.c, std)
+    estimate = calibration.solve()
+    assert estimate is not None and estimate.frames == good.frames - 1
+    assert np.all(np.abs(estimate.c[[0, 1, 3]]) <= [0.001, 0.001, 0.2]), estimate.c
+
+
 def test_disabled_it_never_changes_the_camera():
     calibration, _ = mission(np.array([0.01, 0.01, 0.0, 0.0]), 30, dataclasses.replace(PARAMS, enabled=False))
     assert calibration.applied is None and calibration.camera is CAMERA
