@@ -11,11 +11,13 @@ point c + t d indexes a periodic texture (1 m floor tiles, painted walls with a 
 Foreground, in painter's order (farthest first, by the distance from the camera to each item's
 centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-pixel precision:
 
-* convex solids (object parts, posts): the silhouette is the convex hull of the projected vertices
-  (exact for a box's corners and for a vertical cylinder's two end circles), after clipping the
-  solid at the near plane z_C = NEAR (the hull of the vertices in front plus the near-plane
-  crossings of every segment joining a vertex in front to one behind); flat shading: a vertical
-  cylinder's side and top cap, each box face facing the camera, coloured by Lambert's law;
+* boxes (object parts): the silhouette is the convex hull of the projected corners, after clipping
+  the solid at the near plane z_C = NEAR (the hull of the vertices in front plus the near-plane
+  crossings of every segment joining a vertex in front to one behind); flat shading: each face
+  facing the camera coloured by Lambert's law;
+* vertical cylinders: the same clipped hull of their two end circles, each pixel Lambert-shaded by
+  the side's normal where its ray meets the side, so the light varies across the side as on a
+  real can; the top cap over it in its own shade;
 * triangle meshes (parts of shape ``mesh``, need not be convex): every triangle facing the camera,
   Lambert-shaded, farthest first (by its centroid's distance), filled on one shared supersampled
   buffer, so the silhouette is the exact union of the projected triangles; triangles reaching
@@ -33,14 +35,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List, Sequence, Tuple
+from typing import Callable, List, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 
 from nao_core.landmark_map import Landmark, LandmarkMap
 from nao_core.robot_model import CameraIntrinsics
-from nao_sim.scenarios import Part, Room, Scenario
+from nao_sim.scenarios import Room, Scenario
 
 NEAR = 0.02  # m, near clipping plane
 SHIFT = 4  # sub-pixel bits of cv2 polygon filling
@@ -87,12 +89,14 @@ def _fixed(uv: np.ndarray) -> np.ndarray:
     return np.round(uv * (1 << SHIFT)).astype(np.int32)
 
 
-def fill_convex_polygon(image: np.ndarray, uv: np.ndarray, color: Tuple[int, ...]) -> None:
+def fill_convex_polygon(image: np.ndarray, uv: np.ndarray,
+                        color: Union[Tuple[int, ...], Callable[[int, int, int, int], np.ndarray]]) -> None:
     """Fill a convex polygon with area-exact anti-aliasing: each pixel takes the colour in proportion to
     the part of its area inside the polygon (rasterized on SUPERSAMPLE x SUPERSAMPLE sub-pixels, then
     averaged). cv2's LINE_AA would paint about 0.7 px outside every edge, i.e. draw each silhouette
     ~1.4 px too wide. Pixel j covers [j - 1/2, j + 1/2]; sub-pixel J of the ROI has its centre at
-    u = x0 - 1/2 + (J + 1/2) / SUPERSAMPLE."""
+    u = x0 - 1/2 + (J + 1/2) / SUPERSAMPLE. ``color``: one colour, or a function of the ROI
+    (x0, y0, x1, y1) giving each of its pixels' colour (rows x columns x 3)."""
     h, w = image.shape[:2]
     x0, y0 = (max(int(np.floor(v)), 0) for v in uv.min(axis=0))
     x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1, w), min(int(np.ceil(uv[:, 1].max())) + 1, h)
@@ -105,7 +109,8 @@ def fill_convex_polygon(image: np.ndarray, uv: np.ndarray, color: Tuple[int, ...
     roi = image[y0:y1, x0:x1]
     if roi.ndim == 3:
         alpha = alpha[..., None]
-    roi[...] = np.rint(roi * (1.0 - alpha) + np.float32(color[: roi.shape[-1] if roi.ndim == 3 else 1]) * alpha)
+    paint = color(x0, y0, x1, y1) if callable(color) else np.float32(color[: roi.shape[-1] if roi.ndim == 3 else 1])
+    roi[...] = np.rint(roi * (1.0 - alpha) + paint * alpha)
 
 
 def _inset(polygon: np.ndarray, d: float) -> np.ndarray:
@@ -155,19 +160,13 @@ def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Tupl
 
 
 class _Solid:
-    """A convex part with flat-shaded faces: a vertical cylinder (side, top cap) or a box (six faces)."""
+    """A convex part with flat-shaded faces: a box (six faces)."""
 
-    def __init__(self, part: Part, points_W: np.ndarray, color: Tuple[int, int, int]):
-        self.points_W = points_W  # hull vertices: bottom ring then top ring (box: 4 + 4 corners)
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int]):
+        self.points_W = points_W  # the 4 bottom corners, then the 4 top ones
         self.centre = points_W.mean(axis=0)
         self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
-        n = len(points_W) // 2
-        bottom, top = points_W[:n], points_W[n:]
-        up = np.array([0.0, 0.0, 1.0])
-        if part.shape == "cylinder":  # the side is shaded as a wall facing +x, the cap from above
-            self.hull_color = _shade(color, np.array([1.0, 0.0, 0.0]))
-            self.faces = [(top, up, _shade(color, up))]
-            return
+        bottom, top = points_W[:4], points_W[4:]
         self.hull_color = _shade(color, np.zeros(3))
         self.faces = []
         for face in [top, bottom] + [np.array([bottom[i], bottom[(i + 1) % 4], top[(i + 1) % 4], top[i]]) for i in range(4)]:
@@ -231,6 +230,47 @@ class _MeshSolid:
         colour = cv2.resize(paint, area, interpolation=cv2.INTER_AREA).astype(np.float32) / np.maximum(alpha, 1e-6)
         roi = image[y0:y1, x0:x1]
         roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + colour * alpha), 0, 255)
+
+
+class _Cylinder:
+    """A vertical cylinder: the hull of its two end circles (clipped at the near plane), each pixel
+    in the Lambert shade of the side's normal where its ray meets the side (at the ray's closest
+    approach to the axis for the rim's anti-aliased pixels whose ray misses it), so the light varies
+    across the side as on a real can; the top cap over it, in its own shade, when seen from above."""
+
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int]):
+        self.points_W = points_W  # bottom ring, then top ring
+        self.centre = points_W.mean(axis=0)
+        self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
+        self.top = points_W[len(points_W) // 2:]
+        self.axis = self.top[:, :2].mean(axis=0)
+        self.r = float(np.linalg.norm(self.top[0, :2] - self.axis))
+        self.color = np.float32(color)
+        self.top_color = _shade(color, np.array([0.0, 0.0, 1.0]))
+
+    def draw(self, image: np.ndarray, view: _View) -> None:
+        pts = _clip_near(view.to_camera(self.points_W))
+        if len(pts) < 3:
+            return
+        uv = view.project(pts).astype(np.float32)
+        fill_convex_polygon(image, cv2.convexHull(uv).reshape(-1, 2), lambda *roi: self._side(view, *roi))
+        if view.centre[2] > self.top[0, 2]:
+            _fill_hull(image, view, self.top, self.top_color)
+
+    def _side(self, view: _View, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        """The shaded side's colour at each pixel of the ROI (rows x columns x 3; lens distortion,
+        which bends the rays by far less than the shade changes over, is left out)."""
+        v, u = np.mgrid[y0:y1, x0:x1].astype(np.float64)
+        rays_C = np.stack([(u - view.K[0, 2]) / view.K[0, 0], (v - view.K[1, 2]) / view.K[1, 1], np.ones_like(u)], axis=-1)
+        d = (rays_C @ view.R_CW)[..., :2]  # world directions (R_WC = R_CW^T), horizontal part
+        c = view.centre[:2] - self.axis
+        a, b = np.maximum(np.sum(d * d, axis=-1), 1e-12), d @ c
+        disc = b * b - a * (c @ c - self.r**2)
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a  # the nearer crossing, or the closest approach
+        p = c + t[..., None] * d
+        n = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
+        k = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, n @ LIGHT[:2])
+        return np.minimum(255.0, self.color * k[..., None].astype(np.float32))
 
 
 def _post(x: float, y: float, top: float) -> np.ndarray:
@@ -382,7 +422,8 @@ class Renderer:
         self._atlas, self._wall_rows = _textures(room)
         self._items: List = [
             _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color) if p.shape == "mesh"
-            else _Solid(p, p.world_points(scenario.position, scenario.yaw), scenario.color)
+            else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color) if p.shape == "cylinder"
+            else _Solid(p.world_points(scenario.position, scenario.yaw), scenario.color)
             for p in scenario.parts
         ]
         for lm in landmarks.landmarks:

@@ -16,7 +16,7 @@ from nao_bridge.sim_backend import SimBackend
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import load_robot_model, nao_to_optical
-from nao_sim.render import NEAR
+from nao_sim.render import AMBIENT, LIGHT, NEAR
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
@@ -187,6 +187,31 @@ def test_can_tangent_rays_give_true_bearing_and_width():
     pixel = 1.0 / intr.fx
     assert abs((a_left - a_right) - true_width) < 1.5 * pixel
     assert abs(0.5 * (a_left + a_right) - true_bearing) < 0.75 * pixel
+
+
+@pytest.mark.parametrize("azimuth", [0.3, -0.9, -2.2])  # the light comes from azimuth -0.93
+def test_a_cylinder_side_is_shaded_by_the_normal_at_each_column(azimuth):
+    """Lambert's law across the can's side (render.py): on a row at mid-height, each column's red
+    divided by the shade its surface normal gets is the same all across; a side in one flat shade
+    (as a wall facing one way) would leave the whole range of the normals' shades in that ratio."""
+    world = world_on_orbit("can", "vga", 0.8, azimuth)
+    frame = world.render()
+    T_WC = np.array(world.truth()["camera"]["T_WC"])
+    intr = ROBOT.camera.intrinsics("vga")
+    o, r = np.asarray(world.scenario.position), world.scenario.radius
+    mask = red_mask(frame.image)
+    row = int(np.mean(project(np.array([[*o, 0.1]]), T_WC, "vga")[0, 1]))
+    columns = np.flatnonzero(mask[row])[3:-3]  # off the anti-aliased edges
+    rays = np.column_stack([(columns - intr.cx) / intr.fx, np.full(len(columns), (row - intr.cy) / intr.fy),
+                            np.ones(len(columns))]) @ T_WC[:3, :3].T
+    c, d = T_WC[:2, 3] - o, rays[:, :2]
+    a, b, q = np.sum(d * d, axis=1), 2.0 * d @ c, c @ c - r * r
+    t = (-b - np.sqrt(b * b - 4.0 * a * q)) / (2.0 * a)  # the nearer crossing of the side
+    normals = np.column_stack([(c + t[:, None] * d) / r, np.zeros(len(columns))])
+    shade = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, normals @ LIGHT)
+    ratio = frame.image[row, columns, 2] / shade
+    assert shade.max() / shade.min() > 1.1  # the view shows lit and shaded parts of the side
+    assert ratio.std() / ratio.mean() < 0.02, (ratio.std() / ratio.mean())
 
 
 def test_frames_render_at_both_resolutions_with_noise():
