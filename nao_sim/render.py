@@ -89,8 +89,10 @@ def _fixed(uv: np.ndarray) -> np.ndarray:
     return np.round(uv * (1 << SHIFT)).astype(np.int32)
 
 
-def fill_convex_polygon(image: np.ndarray, uv: np.ndarray,
-                        color: Union[Tuple[int, ...], Callable[[int, int, int, int], np.ndarray]]) -> None:
+Paint = Union[Tuple[int, ...], Callable[[int, int, int, int], np.ndarray]]  # a colour, or one per pixel of a ROI
+
+
+def fill_convex_polygon(image: np.ndarray, uv: np.ndarray, color: Paint) -> None:
     """Fill a convex polygon with area-exact anti-aliasing: each pixel takes the colour in proportion to
     the part of its area inside the polygon (rasterized on SUPERSAMPLE x SUPERSAMPLE sub-pixels, then
     averaged). cv2's LINE_AA would paint about 0.7 px outside every edge, i.e. draw each silhouette
@@ -152,7 +154,7 @@ def _clip_near(points_C: np.ndarray) -> np.ndarray:
     return np.vstack([a, cuts.reshape(-1, 3)])
 
 
-def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Tuple[int, int, int]) -> None:
+def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Paint) -> None:
     pts = _clip_near(view.to_camera(points_W))
     if len(pts) >= 3:
         uv = view.project(pts).astype(np.float32)
@@ -249,11 +251,7 @@ class _Cylinder:
         self.top_color = _shade(color, np.array([0.0, 0.0, 1.0]))
 
     def draw(self, image: np.ndarray, view: _View) -> None:
-        pts = _clip_near(view.to_camera(self.points_W))
-        if len(pts) < 3:
-            return
-        uv = view.project(pts).astype(np.float32)
-        fill_convex_polygon(image, cv2.convexHull(uv).reshape(-1, 2), lambda *roi: self._side(view, *roi))
+        _fill_hull(image, view, self.points_W, lambda *roi: self._side(view, *roi))
         if view.centre[2] > self.top[0, 2]:
             _fill_hull(image, view, self.top, self.top_color)
 
