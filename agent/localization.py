@@ -1134,7 +1134,7 @@ class RobotLocalizer:
         if not np.all(np.abs(_difference(pose, prior)) <= p.jump_sigmas * np.sqrt(np.diag(covariance)) + floor):
             return False
         floored = covariance + np.diag([p.gate_floor_std[0], p.gate_floor_std[0], p.gate_floor_std[1]]) ** 2
-        return _mahalanobis(np.asarray(pose), prior, floored) <= p.jump_chi2
+        return _mahalanobis(pose, prior, floored) <= p.jump_chi2
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):

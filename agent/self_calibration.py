@@ -47,13 +47,13 @@ faster than ``head_still_speed`` or after the first frame (docs/landmarks.md): t
 read for a frame are those of its capture stamp, and a stamp a few milliseconds off at the head's
 speed tilts the fix's camera by a few milliradians, which the pitch-held bundle adjustment takes
 for a vertical focal or principal point error (measured in the matrix: two such fixes of eight,
-2.3 and 0.8 px off in v, put the vertical focal scale 0.7 % off with a stated std of 0.06 %). A mission stands while it searches and
-localizes; when it finds the object at once, it stands at the start of ACTIVE for at most
-``standstill`` s with the head alternating between the object and, ``standstill_dwell`` s each
-(time to get there and settle), the ``standstill_views`` head directions predicted from its pose
-to show a fix to store, most points first and ``standstill_view_spacing`` apart in yaw
-(station/pilot.py), until an estimate is applied,
-or sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
+2.3 and 0.8 px off in v, put the vertical focal scale 0.7 % off with a stated std of 0.06 %). A
+mission stands while it searches and localizes; when it finds the object at once, it stands at the
+start of ACTIVE for at most ``standstill`` s with the head alternating between the object and,
+``standstill_dwell`` s each (time to get there and settle), the ``standstill_views`` head
+directions predicted from its pose to show a fix to store, most points first and
+``standstill_view_spacing`` apart in yaw (station/pilot.py), until an estimate is applied, or
+sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
 predicted to show one (a sparse layout rarely shows two markers at once).
 
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
@@ -228,7 +228,7 @@ class SelfCalibration:
         try:
             for _ in range(p.iterations):
                 S, b = np.diag(prior), prior * c
-                blocks = []
+                blocks, terms = [], []  # per fix: its pose step's factors; its S_k and b_k (for D_k)
                 camera = corrected(self.configured, c)
                 for fix, pose in zip(fixes, poses):
                     r, Jp, Jc, w2 = self._linearize(camera, K0, fix, pose)
@@ -241,10 +241,11 @@ class SelfCalibration:
                     S_k, b_k = Jc.T @ Jc - B.T @ A_inv @ B, Jc.T @ r - B.T @ A_inv @ g
                     S += S_k
                     b += b_k
-                    blocks.append((A_inv, B, g, S_k, b_k))
+                    blocks.append((A_inv, B, g))
+                    terms.append((S_k, b_k))
                 dc = -np.linalg.solve(S, b)
                 c += dc
-                for pose, (A_inv, B, g, _, _) in zip(poses, blocks):
+                for pose, (A_inv, B, g) in zip(poses, blocks):
                     pose += -A_inv @ (g + B @ dc)
                 if np.abs(dc).max() < 1e-7:
                     break
@@ -260,7 +261,7 @@ class SelfCalibration:
         s2 = max(p.pixel_sigma**2, float(sum(np.sum(r**2) for r in residuals)) / dof)
         covariance = s2 * np.linalg.inv(S)
         influence = np.zeros(len(fixes))
-        for k, (*_, S_k, b_k) in enumerate(blocks):  # D_k (module docstring), at the last linearization
+        for k, (S_k, b_k) in enumerate(terms):  # D_k (module docstring), at the last linearization
             try:
                 shift = np.linalg.solve(S - S_k, b_k - b)
             except np.linalg.LinAlgError:

@@ -70,12 +70,13 @@ def _shade(color: Sequence[int], normal: np.ndarray, ambient: float = AMBIENT) -
 class _View:
     """One camera pose: world-to-camera transform and projection."""
 
-    def __init__(self, T_WC: np.ndarray, intrinsics: CameraIntrinsics):
+    def __init__(self, T_WC: np.ndarray, intrinsics: CameraIntrinsics, rays: Tuple[np.ndarray, np.ndarray]):
         self.R_CW = T_WC[:3, :3].T
         self.t_CW = -self.R_CW @ T_WC[:3, 3]
         self.centre = T_WC[:3, 3]
         self.K = intrinsics.K
         self.dist = np.asarray(intrinsics.dist, dtype=float)
+        self.ray_x, self.ray_y = rays  # H x W: each pixel's ray (x, y, 1) in the optical frame, distortion removed
 
     def to_camera(self, points_W: np.ndarray) -> np.ndarray:
         return points_W @ self.R_CW.T + self.t_CW
@@ -256,11 +257,10 @@ class _Cylinder:
             _fill_hull(image, view, self.top, self.top_color)
 
     def _side(self, view: _View, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
-        """The shaded side's colour at each pixel of the ROI (rows x columns x 3; lens distortion,
-        which bends the rays by far less than the shade changes over, is left out)."""
-        v, u = np.mgrid[y0:y1, x0:x1].astype(np.float64)
-        rays_C = np.stack([(u - view.K[0, 2]) / view.K[0, 0], (v - view.K[1, 2]) / view.K[1, 1], np.ones_like(u)], axis=-1)
-        d = (rays_C @ view.R_CW)[..., :2]  # world directions (R_WC = R_CW^T), horizontal part
+        """The shaded side's colour at each pixel of the ROI (rows x columns x 3)."""
+        x, y = view.ray_x[y0:y1, x0:x1], view.ray_y[y0:y1, x0:x1]
+        rays_C = np.stack([x, y, np.ones_like(x)], axis=-1)
+        d = (rays_C.astype(np.float64) @ view.R_CW)[..., :2]  # world directions (R_WC = R_CW^T), horizontal part
         c = view.centre[:2] - self.axis
         a, b = np.maximum(np.sum(d * d, axis=-1), 1e-12), d @ c
         disc = b * b - a * (c @ c - self.r**2)
@@ -465,7 +465,8 @@ class Renderer:
         """The camera image at T_WC; ``frame_index`` seeds this frame's noise (deterministic)."""
         T_WC = np.asarray(T_WC, dtype=float)
         image = self.background(T_WC)
-        view = _View(T_WC, self.intrinsics)
+        h, w = self.intrinsics.height, self.intrinsics.width
+        view = _View(T_WC, self.intrinsics, (self._ray_x.reshape(h, w), self._ray_y.reshape(h, w)))
         centres_C = view.to_camera(self._centres)
         in_view = (centres_C @ self._frustum.T > -self._radii[:, None]).all(axis=1)  # bounding spheres
         depth = np.linalg.norm(centres_C, axis=1)
