@@ -16,6 +16,14 @@ Analytic Jacobian H = dh/dx (rows phi, delta)::
     asin:  ddelta/d(xo, yo, r) = (-2 r dx, -2 r dy, 2 d^2) / (d^2 sqrt(d^2 - r^2))
     atan:  ddelta/d(xo, yo, r) = (-r dx / d, -r dy / d, d) / (d^2 + r^2)
 
+The camera pose is an estimate too: with its covariance C (3x3, of (cx, cy, psi)) a view's noise is
+
+    R = diag(sigma_phi^2, sigma_delta^2) + Hc C Hc^T,   Hc = dh/dcam = (-H[:, 0], -H[:, 1], (-1, 0))
+
+(dh/d(cx, cy) = -dh/d(xo, yo); the bearing is measured from psi). A view from a pose known to a
+few centimetres weighs less, and is gated and restarts the estimate less readily, than one taken
+just after a landmark fix (docs/estimation.md, "Pose uncertainty").
+
 Prediction: x- = x, P- = P + Q dt, Q = diag(q_x^2, q_y^2, q_r^2) (the object is static).
 
 Two parametrisations of the same estimate, each a small immutable state class
@@ -222,6 +230,13 @@ def measurement_jacobian(x: np.ndarray, cams: np.ndarray, width_model: WidthMode
         H[..., 1, 1] = -r * dy * scale / np.sqrt(bearing_d2)
         H[..., 1, 2] = np.sqrt(d2) * scale
     return H
+
+
+def pose_noise(x: np.ndarray, cam: np.ndarray, cam_cov: np.ndarray, width_model: WidthModel = "asin") -> np.ndarray:
+    """Hc C Hc^T: the (phi, delta) covariance a camera pose covariance ``cam_cov`` (3x3) adds (module docstring)."""
+    H = measurement_jacobian(x, cam, width_model)
+    Hc = np.column_stack([-H[:, 0], -H[:, 1], [-1.0, 0.0]])
+    return Hc @ np.asarray(cam_cov, dtype=float) @ Hc.T
 
 
 def _inverse_spd(S: np.ndarray) -> np.ndarray:
@@ -593,6 +608,18 @@ class ObjectEKF:
             return f"width must be finite and in (0, {self._max_width:.4f}) rad, got {delta!r}"
         return None
 
+    @staticmethod
+    def _invalid_covariance(cam_cov: Optional[np.ndarray]) -> Optional[str]:
+        if cam_cov is None:
+            return None
+        try:
+            C = np.asarray(cam_cov, dtype=float)
+        except (TypeError, ValueError):
+            C = None
+        if C is None or C.shape != (3, 3) or not np.all(np.isfinite(C)) or np.any(np.linalg.eigvalsh(0.5 * (C + C.T)) < -1e-12):
+            return f"camera pose covariance must be a finite positive semi-definite 3 x 3 matrix, got {cam_cov!r}"
+        return None
+
     def _reject_invalid(self, reason: str, dof: int) -> UpdateResult:
         self.stats.invalid += 1
         self.stats.rejected_in_a_row += 1
@@ -624,12 +651,17 @@ class ObjectEKF:
             state.considered(cam, self.params),
         )
 
-    def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
-        """Fuse one observation (bearing-only when ``delta`` is None); gated, never leaves a NaN."""
+    def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None,
+               cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+        """Fuse one observation (bearing-only when ``delta`` is None); gated, never leaves a NaN.
+
+        ``cam_cov``: covariance of the camera pose (cx, cy, psi), added to the noise through Hc
+        (module docstring); None for a pose taken as exact.
+        """
         dof = 1 if delta is None else 2
         if self._state is None:
             return self._reject_invalid("filter not initialized", dof)
-        reason = self._invalid(cam, phi, delta)
+        reason = self._invalid(cam, phi, delta) or self._invalid_covariance(cam_cov)
         if reason is not None:
             return self._reject_invalid(reason, dof)
         cam = np.asarray(cam, dtype=float)
@@ -639,9 +671,12 @@ class ObjectEKF:
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
         h, H = state.model(state.mean, cam, dof, self.params.width_model)
         nu = _wrapped(z - h)
-        predicted = H @ state.cov @ H.T + self.params.R[:dof, :dof]
+        R = self.params.R.copy()
+        if cam_cov is not None:
+            R += pose_noise(self.x, cam, cam_cov, self.params.width_model)
+        R = R[:dof, :dof]
+        predicted = H @ state.cov @ H.T + R
         bearing_ok = nu[0] ** 2 <= self._gate[1] * predicted[0, 0]
-        R = self.params.R[:dof, :dof].copy()
         if dof == 2:
             if bearing_ok:
                 self.width.add(float(nu[1]), float(predicted[1, 1]), float(h[1]))

@@ -154,6 +154,18 @@ class SelfCalibration:
         """The configured camera, corrected by the applied estimate."""
         return self.configured if self.applied is None else corrected(self.configured, self.applied.c)
 
+    @property
+    def covariance(self) -> np.ndarray:
+        """Of c = (s_x, s_y, d_u, d_v) for ``camera``: the applied estimate's, else the prior's (what a
+        calibration may be off by)."""
+        if self.applied is not None:
+            return self.applied.covariance
+        return np.diag(self._prior_sigmas() ** 2)
+
+    def _prior_sigmas(self) -> np.ndarray:
+        p = self.params
+        return np.array([p.scale_sigma, p.scale_sigma, p.principal_sigma, p.principal_sigma])
+
     def can_store_fixes_from(self, landmark_map: LandmarkMap) -> bool:
         """Could a fix from this map be stored: ``min_landmarks`` landmarks and ``min_points`` points (four per marker)?"""
         markers, balls = len(landmark_map.of_kind("aruco")), len(landmark_map.of_kind("color"))
@@ -221,7 +233,7 @@ class SelfCalibration:
 
     def _solve(self, fixes: List[_Fix]):
         p = self.params
-        prior = (p.pixel_sigma / np.array([p.scale_sigma, p.scale_sigma, p.principal_sigma, p.principal_sigma])) ** 2
+        prior = (p.pixel_sigma / self._prior_sigmas()) ** 2
         c = np.zeros(4) if self.estimate is None else self.estimate.c.copy()
         poses = [f.p.copy() for f in fixes]
         K0 = self.configured.K
@@ -280,14 +292,10 @@ class SelfCalibration:
 
     def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
         """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
-        uv, z, J = PlanarModel(camera, fix.T_BC).jacobian(pose, fix.X)
+        model = PlanarModel(camera, fix.T_BC)
+        uv, z, J = model.jacobian(pose, fix.X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point behind the camera")
-        K = camera.K
-        Jc = np.zeros((len(fix.X), 2, 4))
-        Jc[:, 0, 0] = K0[0, 0] * (uv[:, 0] - K[0, 2]) / K[0, 0]  # f_x x/z, the normalised point from the projection
-        Jc[:, 1, 1] = K0[1, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]
-        Jc[:, 0, 2] = 1.0
-        Jc[:, 1, 3] = 1.0
+        Jc = model.intrinsics_jacobian(uv, K0)
         w2 = (self.params.pixel_sigma / fix.roll_sigma) ** 2
         return (uv - fix.u).ravel(), J.reshape(-1, 4), Jc.reshape(-1, 4), w2

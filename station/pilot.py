@@ -18,9 +18,10 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    switches the camera of every step to the corrected intrinsics (/agent/self_calibration)
     perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
                    the image gives (agent/clearance.py)
-    filter:        EKF predict(s - s_prev), then update(cam, phi, delta), or initialize; none once the
-                   mission has decided (DONE, STOPPING: the same view again and again while the robot
-                   stops must not move, let alone re-initialize, the estimate decided on)
+    filter:        EKF predict(s - s_prev), then update(cam, phi, delta, C_cam), or initialize, with
+                   C_cam = J P_t J^T from the localizer's total_covariance P_t (agent/ekf.py);
+                   none once the mission has decided (DONE, STOPPING: the same view again and again
+                   while the robot stops must not move, let alone re-initialize, the estimate decided on)
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
                    measured and agent.keyframes.KeyframePool keeps it: its viewing azimuth
                    a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle,
@@ -177,6 +178,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
+        self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self._standstill: Optional[float] = None if self.calibration.can_store_fixes_from(config.landmarks) else -math.inf  # its start
         self._t_stored = -math.inf  # when the self-calibration last stored a fix
         self._calibration_views: List[Tuple[float, float]] = []  # head directions the standstill looks through
@@ -321,7 +323,7 @@ class Pilot:
         decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
-                self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta)
+                self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta, self._camera_covariance(cam))
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
@@ -332,18 +334,30 @@ class Pilot:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0)
 
-    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, phi: float, delta: Optional[float]) -> None:
+    def _camera_covariance(self, cam: Cam) -> Optional[np.ndarray]:
+        """Covariance of (cx, cy, psi) from the localizer's pose covariance at this capture (with the
+        intrinsics' share, which fixes do not average out), through the camera's lever arm:
+        d(cx, cy, psi)/d(x, y, theta) = [[1, 0, -(cy - y)], [0, 1, cx - x], [0, 0, 1]]. None in the
+        odometry frame (unanchored views are exact relative to the start) or without a finite covariance."""
+        P = self.localizer.total_covariance
+        if not self.anchored or not np.all(np.isfinite(P)):
+            return None
+        J = np.array([[1.0, 0.0, self.pose[1] - cam[1]], [0.0, 1.0, cam[0] - self.pose[0]], [0.0, 0.0, 1.0]])
+        return J @ P @ J.T
+
+    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, phi: float, delta: Optional[float],
+                cam_cov: Optional[np.ndarray]) -> None:
         if not self.anchored:
             self._unanchored.append((stamp, cam, phi, delta))
-        result = self._observe(stamp, cam, phi, delta)
+        result = self._observe(stamp, cam, phi, delta, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
         step.outputs.append(self._ekf_record(t))
 
-    def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float]):
+    def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], cam_cov: Optional[np.ndarray] = None):
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            result = self.ekf.update(cam, phi, delta)
+            result = self.ekf.update(cam, phi, delta, cam_cov)
         else:
             result = self.ekf.initialize(cam, phi, delta)
         self._last_capture = stamp
@@ -353,6 +367,7 @@ class Pilot:
         """Every user of the camera (localizer, perception, head servo, keyframes) switches to the
         intrinsics the landmark fixes gave (agent/self_calibration.py); from the next frame on."""
         self.camera = self.localizer.camera = self.calibration.camera
+        self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         applied = self.calibration.applied
         std = np.sqrt(np.diag(applied.covariance))
         step.outputs.append(CalibrationRecord(t, _flat(self.camera.K), tuple(map(float, applied.c)), tuple(map(float, std)),
