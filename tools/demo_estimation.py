@@ -45,11 +45,37 @@ class Trace:
     nis: np.ndarray  # (N,)
     accepted: np.ndarray  # (N,) bool
     outlier: np.ndarray  # (N,) bool
+    restarts: int = 0  # the filter's re-initializations
+
 
     @property
     def nees(self) -> np.ndarray:
         err = self.x - self.truth
         return np.einsum("ni,ni->n", err, np.linalg.solve(self.P, err[..., None])[..., 0])
+
+
+@dataclass(frozen=True)
+class PoseDrift:
+    """Errors of the camera poses the filter is told, as a localizer between landmark fixes makes
+    them: a random walk of ``step`` (m, per position axis) and ``heading_step`` (rad) std per view,
+    reset every ``fix_every`` views to a fix's error of std ``fix`` (m) and ``heading_fix`` (rad)."""
+
+    step: float
+    heading_step: float
+    fix: float
+    heading_fix: float
+    fix_every: int
+
+    def draw(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(errors (n, 3), their covariances (n, 3, 3)): what the poses are off by and what a localizer says."""
+        fix_var = np.array([self.fix, self.fix, self.heading_fix]) ** 2
+        step_var = np.array([self.step, self.step, self.heading_step]) ** 2
+        errors, covs = np.empty((n, 3)), np.empty((n, 3, 3))
+        for k in range(n):
+            since = k % self.fix_every
+            errors[k] = rng.normal(0.0, np.sqrt(fix_var)) if since == 0 else errors[k - 1] + rng.normal(0.0, np.sqrt(step_var))
+            covs[k] = np.diag(fix_var + since * step_var)
+        return errors, covs
 
 
 def simulate(
@@ -59,13 +85,17 @@ def simulate(
     rng: np.random.Generator,
     dt: float = 0.1,
     outlier_fraction: float = 0.0,
+    drift: Optional[PoseDrift] = None,
+    weigh_pose: bool = False,
 ) -> Trace:
     """Initialize ``ekf`` from the first view, then predict(dt) + update per view; noisy (phi, delta).
 
     Gross outliers (after the first view): bearing off by 3 to 20 deg and width scaled by 0.5 to 0.75
-    or 1.3 to 2, with probability ``outlier_fraction``.
+    or 1.3 to 2, with probability ``outlier_fraction``. With ``drift`` the filter is told camera poses
+    off by its errors (the views are of the true ones), and their covariances when ``weigh_pose``.
     """
     p = ekf.params
+    errors, covs = drift.draw(len(cams), rng) if drift else (np.zeros((len(cams), 3)), np.zeros((len(cams), 3, 3)))
     z = measure(truth, cams, p.width_model) + rng.normal(0.0, [p.sigma_phi, p.sigma_delta], size=(len(cams), 2))
     outlier = rng.random(len(cams)) < outlier_fraction
     outlier[0] = False
@@ -73,28 +103,30 @@ def simulate(
     z[outlier, 0] += rng.choice([-1.0, 1.0], n_out) * np.radians(rng.uniform(3.0, 20.0, n_out))
     z[outlier, 1] *= np.where(rng.random(n_out) < 0.5, rng.uniform(0.5, 0.75, n_out), rng.uniform(1.3, 2.0, n_out))
     xs, Ps, nis, accepted = [], [], [], []
-    for k, (cam, (phi, delta)) in enumerate(zip(cams, z)):
+    for k, (cam, (phi, delta)) in enumerate(zip(cams + errors, z)):
         if k == 0:
             result = ekf.initialize(cam, phi, delta)
         else:
             ekf.predict(dt)
-            result = ekf.update(cam, phi, delta)
+            result = ekf.update(cam, phi, delta, covs[k] if weigh_pose else None)
         xs.append(ekf.x.copy())
         Ps.append(ekf.P.copy())
         nis.append(np.nan if result.nis is None else result.nis)
         accepted.append(result.accepted)
-    return Trace(np.asarray(truth, float), cams, np.array(xs), np.array(Ps), np.array(nis), np.array(accepted), outlier)
+    return Trace(np.asarray(truth, float), cams, np.array(xs), np.array(Ps), np.array(nis), np.array(accepted), outlier,
+                 ekf.stats.reinitialized)
 
 
 def circling_runs(
-    params: EKFParams, n_runs: int, n_views: int, seed: int, radius_std: float = 0.0, outliers: float = 0.0
+    params: EKFParams, n_runs: int, n_views: int, seed: int, radius_std: float = 0.0, outliers: float = 0.0,
+    drift: Optional[PoseDrift] = None, weigh_pose: bool = False,
 ) -> list[Trace]:
     """Monte-Carlo runs of one circle at 0.5 m around a random object (centre in [-1, 1]^2 m).
 
     The true radius is 0.07 m, or, when ``radius_std`` > 0, drawn from the prior as the filter models
     it (a truth that matches the model, for consistency checks): the radius prior propagated to first
     order to the inverse radius, 1 / r ~ N(1 / radius_prior, (radius_std / radius_prior^2)^2).
-    Random start angle and aim offset.
+    Random start angle and aim offset; ``drift`` and ``weigh_pose`` as for :func:`simulate`.
     """
     rng = np.random.default_rng(seed)
     traces = []
@@ -104,7 +136,7 @@ def circling_runs(
         truth = np.array([*rng.uniform(-1.0, 1.0, 2), r])
         start, aim = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2)
         cams = circling_cameras(truth[:2], 0.5, n_views, start=start, aim_offset=aim)
-        traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers))
+        traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers, drift=drift, weigh_pose=weigh_pose))
     return traces
 
 
