@@ -341,3 +341,25 @@ def test_after_the_decision_frames_no_longer_change_the_estimate():
     records = feed(4)
     assert np.array_equal(pilot.ekf.x, x) and pilot.ekf.stats.accepted == accepted
     assert not [r for r in records if type(r).__name__ in ("MeasurementRecord", "KeyframeRecord")]
+
+
+def test_a_view_s_camera_covariance_is_the_pose_s_through_the_camera_s_lever_arm():
+    """The filter is given the camera's covariance (agent/ekf.py, "Pose uncertainty"): the localizer's
+    total covariance moved to the camera. A heading error alone swings a camera 5 cm ahead of the
+    robot's origin across its arm (std 5 cm x 0.01 rad), not along it; before the first fix (the
+    odometry frame) there is none. The localizer starts with the calibration prior's intrinsics covariance."""
+    pilot = Pilot(CONFIG, INFO)
+    p = CONFIG.self_calibration
+    np.testing.assert_allclose(np.diag(pilot.localizer.intrinsics_covariance),
+                               [p.scale_sigma**2, p.scale_sigma**2, p.principal_sigma**2, p.principal_sigma**2])
+    theta = 0.3
+    pilot.pose = (1.0, 2.0, theta)
+    cam = (1.0 + 0.05 * math.cos(theta), 2.0 + 0.05 * math.sin(theta), theta)
+    pilot.localizer.total_covariance = np.diag([0.0, 0.0, 0.01**2])
+    assert pilot._camera_covariance(cam) is None  # not anchored: the odometry frame
+    pilot.anchored = True
+    C = pilot._camera_covariance(cam)
+    across, along = np.array([-math.sin(theta), math.cos(theta)]), np.array([math.cos(theta), math.sin(theta)])
+    assert across @ C[:2, :2] @ across == pytest.approx((0.05 * 0.01) ** 2)
+    assert along @ C[:2, :2] @ along == pytest.approx(0.0, abs=1e-15)
+    assert C[2, 2] == pytest.approx(0.01**2)

@@ -47,7 +47,6 @@ class Trace:
     outlier: np.ndarray  # (N,) bool
     restarts: int = 0  # the filter's re-initializations
 
-
     @property
     def nees(self) -> np.ndarray:
         err = self.x - self.truth
