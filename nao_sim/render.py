@@ -61,9 +61,15 @@ COLOURS_BGR = {
 }
 
 
+def _lambert(normals: np.ndarray, ambient: float = AMBIENT) -> np.ndarray:
+    """Lambert's factor ambient + (1 - ambient) max(0, n . l) of unit normals (..., 3), or of
+    horizontal ones (..., 2)."""
+    return ambient + (1.0 - ambient) * np.maximum(0.0, normals @ LIGHT[: normals.shape[-1]])
+
+
 def _shade(color: Sequence[int], normal: np.ndarray, ambient: float = AMBIENT) -> Tuple[int, int, int]:
     """Lambert: colour * (ambient + (1 - ambient) max(0, n . l))."""
-    k = ambient + (1.0 - ambient) * max(0.0, float(np.dot(normal, LIGHT)))
+    k = float(_lambert(np.asarray(normal, dtype=float), ambient))
     return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
 
 
@@ -199,7 +205,7 @@ class _MeshSolid:
         keep = length > 0.0  # degenerate triangles cover no pixel
         self.faces, tri, self.normals = faces[keep], tri[keep], normals[keep] / length[keep, None]
         self.centroids = tri.mean(axis=1)
-        k = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, self.normals @ LIGHT)
+        k = _lambert(self.normals)
         self.colors = np.minimum(255, np.rint(np.outer(k, color))).astype(np.uint8)
 
     def draw(self, image: np.ndarray, view: _View) -> None:
@@ -267,7 +273,7 @@ class _Cylinder:
         t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a  # the nearer crossing, or the closest approach
         p = c + t[..., None] * d
         n = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
-        k = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, n @ LIGHT[:2])
+        k = _lambert(n)
         return np.minimum(255.0, self.color * k[..., None].astype(np.float32))
 
 
