@@ -666,14 +666,15 @@ class ObjectEKF:
             return self._reject_invalid(reason, dof)
         cam = np.asarray(cam, dtype=float)
         state = self._state
-        if not _outside(self.x, cam):
+        x = state.cartesian()[0]
+        if not _outside(x, cam):
             return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
         h, H = state.model(state.mean, cam, dof, self.params.width_model)
         nu = _wrapped(z - h)
         R = self.params.R.copy()
         if cam_cov is not None:
-            R += pose_noise(self.x, cam, cam_cov, self.params.width_model)
+            R += pose_noise(x, cam, cam_cov, self.params.width_model)
         R = R[:dof, :dof]
         predicted = H @ state.cov @ H.T + R
         bearing_ok = nu[0] ** 2 <= self._gate[1] * predicted[0, 0]

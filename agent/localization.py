@@ -644,7 +644,7 @@ class RobotLocalizer:
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
         self._correction: Optional[Pose] = None  # W <- odometry frame
         self.covariance = np.full((3, 3), np.nan)
-        self.intrinsics_covariance = np.zeros((4, 4))  # of (s_x, s_y, d_u, d_v): what the camera's K may be off by
+        self._intrinsics_covariance = np.zeros((4, 4))  # of (s_x, s_y, d_u, d_v): what the camera's K may be off by
         self.total_covariance = np.full((3, 3), np.nan)  # the pose's, with the intrinsics' share (module docstring)
         self._intrinsics_cross = np.zeros((3, 4))  # Cov(pose error, intrinsics error)
         self.rejected_jumps = 0
@@ -1176,14 +1176,19 @@ class RobotLocalizer:
         floored = covariance + np.diag([p.gate_floor_std[0], p.gate_floor_std[0], p.gate_floor_std[1]]) ** 2
         return _mahalanobis(pose, prior, floored) <= p.jump_chi2
 
+    @property
+    def intrinsics_covariance(self) -> np.ndarray:
+        """Of (s_x, s_y, d_u, d_v): what the camera's K may be off by (module docstring)."""
+        return self._intrinsics_covariance
+
     def set_intrinsics_covariance(self, covariance: np.ndarray) -> None:
         """The covariance of (s_x, s_y, d_u, d_v) the camera's K may be off by (a new K: the pose's error
         no longer correlates with the new K's)."""
-        self.intrinsics_covariance = np.asarray(covariance, dtype=float)
+        self._intrinsics_covariance = np.asarray(covariance, dtype=float)
         self._intrinsics_cross = np.zeros((3, 4))
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
-        G, C, Sigma = fix.intrinsics_gain, self._intrinsics_cross, self.intrinsics_covariance
+        G, C, Sigma = fix.intrinsics_gain, self._intrinsics_cross, self._intrinsics_covariance
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):
             pose, P = np.array(fix.pose), fix.covariance
             total, self._intrinsics_cross = fix.covariance + G @ Sigma @ G.T, G @ Sigma
