@@ -94,9 +94,11 @@ class SelfCalibrationParams:
     outlier_rms_ratio: float = field(metadata=bounds(1.0, 100.0))  # a fix this many times the median RMS is dropped
     max_influence: float = field(metadata=bounds(1.0, 1e6))  # ... and the fix whose removal moves c by more (D_k) than this
     iterations: int = field(metadata=bounds(1, 100))
-    standstill: float = field(metadata=bounds(0.0, 60.0))  # s the mission stands at most for its first estimate (station/pilot.py)
-    standstill_patience: float = field(metadata=bounds(0.0, 60.0))  # s: ... and no longer than this without a fix to store
-    standstill_dwell: float = field(metadata=bounds(0.1, 60.0))  # s the head stays on each calibration view, between object dwells
+    standstill: float = field(metadata=bounds(0.0, 60.0))  # s a standstill lasts at most (agent/standstill.py)
+    standstill_dwell: float = field(metadata=bounds(0.1, 60.0))  # s the head stays on each calibration view once there, between object dwells
+    standstill_travel: float = field(metadata=bounds(0.0, 60.0))  # s after which a leg's dwell starts although no frame showed the head there
+    standstill_attempts: int = field(metadata=bounds(0, 100))  # standstills in all, while no estimate is applied
+    standstill_interval: float = field(metadata=bounds(0.0, 600.0))  # s from the end of one (or a try without a view) to the next
     standstill_views: int = field(metadata=bounds(1, 100))  # head directions the standstill looks through (predicted to give fixes to store)
     standstill_view_spacing: float = field(metadata=bounds(0.0, 3.0))  # rad of head yaw between two of them at least
 

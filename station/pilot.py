@@ -37,11 +37,11 @@ them in order: the estimate of the odometry frame becomes the same estimate in W
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
 with an object estimate (a side-cut sighting alone gives none, and the scan would look away from
-it): a zero walk, the head alternating between the object (``gaze_dwell``) and the directions
-predicted to show a fix to store (``standstill_dwell`` each: fixes are stored once the head has
-settled), until an estimate is applied, ``self_calibration.standstill`` s at most and
-``standstill_patience`` s without a fix to store (no keyframes meanwhile); no standstill when no
-direction is predicted to show one. Then in ACTIVE the walk command is the
+it): a zero walk, the head alternating between the object and the directions predicted from the
+pose to show a fix to store (agent/standstill.py: each dwell counted from the head's arrival,
+fixes are stored once it has settled), until an estimate is applied, its time is up or a cycle of
+views stored nothing; tried again ``standstill_interval`` s later while no estimate is applied,
+``standstill_attempts`` in all (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
 and the next yaw of the landmark scan.
@@ -98,6 +98,7 @@ from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
 from agent.self_calibration import SelfCalibration
+from agent.standstill import CalibrationStandstill
 from nao_core.geometry import Pose, camera_in_world, compose, relative, wrap_angle
 from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel
@@ -179,9 +180,8 @@ class Pilot:
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
-        self._standstill: Optional[float] = None if self.calibration.can_store_fixes_from(config.landmarks) else -math.inf  # its start
-        self._t_stored = -math.inf  # when the self-calibration last stored a fix
-        self._calibration_views: List[Tuple[float, float]] = []  # head directions the standstill looks through
+        self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
+                                                self.calibration.can_store_fixes_from(config.landmarks))
         self.pose: Optional[Pose] = None  # in W once anchored, else in the odometry frame
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -244,9 +244,10 @@ class Pilot:
         t = event.t
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=True):
-            fixes = len(self.calibration.fixes)
-            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self._calibration_gaze(t), reason=(
-                f"self-calibration: standing for landmark views ({fixes} of {self.config.self_calibration.min_frames} fixes)"))
+            p = self.config.self_calibration
+            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self.standstill.head(t, self._object_head()), reason=(
+                f"self-calibration: standing for landmark views ({len(self.calibration.fixes)} of {p.min_frames} fixes, "
+                f"standstill {self.standstill.attempts} of {p.standstill_attempts})"))
         elif decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._sighting if self._sighting else (None, None)
             head = self._landmark_lookout(t)
@@ -294,12 +295,13 @@ class Pilot:
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
         with guarded("calibration"):
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
+            self.standstill.on_head(t, meta.head_yaw, meta.head_pitch)
             if fix is not None:
                 stored = self.calibration.stored
                 if self.calibration.add(fix, meta.stamp):
                     self._recalibrated(step, t)
                 if self.calibration.stored != stored:
-                    self._t_stored = t
+                    self.standstill.on_stored(t)
         step.outputs.append(PoseRecord(t, meta.seq, meta.stamp, self.pose, tuple(map(float, meta.odom)), fix is not None,
                                        _flat(T_WC), _flat(T_BC), self.anchored))
         with guarded("perception"):
@@ -433,16 +435,6 @@ class Pilot:
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 
-    def _calibration_gaze(self, t: float) -> Tuple[float, float]:
-        """Self-calibration standstill, from its start: ``gaze_dwell`` on the object, then
-        ``standstill_dwell`` on the next calibration view (long enough for the head to get there and
-        settle: fixes are stored only then), and again."""
-        period = self.config.mission.gaze_dwell + self.config.self_calibration.standstill_dwell
-        cycle, phase = divmod(t - self._standstill, period)
-        if phase < self.config.mission.gaze_dwell or not self._calibration_views:
-            return self._object_head()
-        return self._calibration_views[int(cycle) % len(self._calibration_views)]
-
     def _views_to_calibrate(self) -> List[Tuple[float, float]]:
         """Head directions from the current pose predicted to show a fix the self-calibration stores
         (``min_points`` points of ``min_landmarks`` landmarks), most points first, at most
@@ -463,23 +455,16 @@ class Pilot:
         return views[:p.standstill_views]
 
     def _calibration_standstill(self, t: float, start: bool = False) -> bool:
-        """Is the robot standing for its self-calibration (agent/self_calibration.py; walking fixes
-        would pass the sway for a calibration error): from the first ACTIVE tick (``start``) with an
-        object estimate (its even gaze dwells keep the object in view) until an estimate is applied,
-        ``standstill`` s at most, and ``standstill_patience`` s at most without a fix to store. No
+        """Is the robot standing for its self-calibration (agent/standstill.py): one is under way, or
+        (``start``, an ACTIVE tick with an object estimate, whose object legs keep it in view) one is
+        due and a direction is predicted to show a fix to store. None once an estimate is applied. No
         keyframe is taken meanwhile."""
-        p = self.config.self_calibration
-        if not p.enabled or self.calibration.applied is not None:
+        if self.calibration.applied is not None:
+            self.standstill.stop(t)
             return False
-        if self._standstill is None and not (start and self.ekf.initialized):
-            return False
-        if self._standstill is None:
-            self._calibration_views = self._views_to_calibrate()
-            if not self._calibration_views:  # no view from here shows a fix to store: do not stand for one
-                self._standstill = -math.inf
-                return False
-            self._standstill = t
-        return t - self._standstill < p.standstill and t - max(self._standstill, self._t_stored) < p.standstill_patience
+        if self.standstill.standing(t):
+            return True
+        return start and self.ekf.initialized and self.standstill.due(t) and self.standstill.begin(t, self._views_to_calibrate())
 
     def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
         """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""

@@ -259,8 +259,9 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
     """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
     sway for a calibration error), the head alternating between the object and the directions
-    predicted to show a fix to store; an applied estimate, the standstill's end, or no fix to store
-    for its patience, lets the planner's command through. Where no direction shows one, no standstill."""
+    predicted to show a fix to store (agent/standstill.py has the schedule); the standstill's end
+    lets the planner's command through, and one is tried again later while no estimate is applied.
+    Where no direction shows one, no standstill; once an estimate is applied, none."""
     assert len(CONFIG.landmarks.of_kind("aruco")) >= 2
     p = CONFIG.self_calibration
     pilot = Pilot(CONFIG, INFO)
@@ -268,51 +269,40 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     pilot.mission.tick(0.0)
     pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
     assert pilot.mission.phase is Phase.ACTIVE
+    assert not pilot._calibration_standstill(0.1, start=True)  # noqa: SLF001 - no estimate yet: following the sighting comes first
     pilot.pose, pilot.anchored = (0.0, 0.0, 0.0), True
     pilot.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
     pilot.command = (0.08, 0.0, 0.2)  # what the planner wants
-    dwell = CONFIG.mission.gaze_dwell
     ticks = []
-    pilot._t_stored = 0.2 + 3 * dwell  # noqa: SLF001 - fixes to store keep coming
-    for k in range(4):
-        pilot.mission.on_frame(0.2 + k * dwell, object_seen=True, landmark_fix=True, localized=True)
-        ticks.append(pilot.handle(Tick(0.2 + k * dwell)).decision)
+    for k in range(40):
+        t = 0.2 + 0.1 * k
+        pilot.mission.on_frame(t, object_seen=True, landmark_fix=True, localized=True)
+        decision = pilot.handle(Tick(t)).decision
+        pilot.standstill.on_head(t, *decision.head)  # the head is where it was sent
+        ticks.append(decision)
     assert all(d.walk == (0.0, 0.0, 0.0) and d.reason.startswith("self-calibration") for d in ticks)
-    assert len({d.head for d in ticks}) >= 2  # the object, then a calibration view
-    views = pilot._calibration_views  # noqa: SLF001
-    assert 1 <= len(views) <= p.standstill_views and ticks[1].head in views
+    views = pilot.standstill.views
+    heads = [d.head for d in ticks]  # the object, then the first view once the object's dwell is over
+    assert 1 <= len(views) <= p.standstill_views and heads[0] == pilot._object_head() and views[0] in heads  # noqa: SLF001
+    assert heads.index(views[0]) == pytest.approx(CONFIG.mission.gaze_dwell / 0.1, abs=1)
     for yaw, pitch in views:
         points, landmarks = pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(yaw, pitch))
         assert points >= p.min_points and landmarks >= p.min_landmarks
-    # the third cycle: a view held for standstill_dwell (time to get there and settle), then the object again
-    cycle = 0.2 + 2 * (dwell + p.standstill_dwell)
-    pilot._t_stored = cycle  # noqa: SLF001
-    heads = []
-    view_end = cycle + dwell + p.standstill_dwell
-    for t in (cycle + 0.5 * dwell, cycle + dwell + 0.05, view_end - 0.05, view_end + 0.05):
-        pilot.mission.on_frame(t, object_seen=True, landmark_fix=True, localized=True)
-        heads.append(pilot.handle(Tick(t)).decision.head)
-    assert heads[1] == heads[2] == views[2 % len(views)] and heads[0] == heads[3] == pilot._object_head()  # noqa: SLF001
-    pilot._t_stored = 0.2 + p.standstill - 1.0  # noqa: SLF001 - fixes keep coming: it lasts its full length
-    assert pilot._calibration_standstill(0.2 + p.standstill - 0.01)  # noqa: SLF001
-    over = 0.2 + p.standstill + 0.01  # the standstill is bounded
+    over = 0.2 + p.standstill + 0.01  # the standstill is bounded (no fix was stored: it ends sooner)
     assert not pilot._calibration_standstill(over)  # noqa: SLF001
     pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
     assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
-    patient = Pilot(CONFIG, INFO)  # no fix to store comes (sparse markers): it ends after the patience
-    assert not patient._calibration_standstill(0.0, start=True)  # noqa: SLF001 - no estimate yet: following the sighting comes first
-    patient.pose, patient.anchored = (0.0, 0.0, 0.0), True
-    patient.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
-    assert patient._calibration_standstill(0.0, start=True)  # noqa: SLF001
-    assert not patient._calibration_standstill(p.standstill_patience + 0.01)  # noqa: SLF001
+    again = over + p.standstill_interval  # no estimate applied yet: it stands again
+    pilot.mission.on_frame(again, object_seen=True, landmark_fix=True, localized=True)
+    assert pilot.handle(Tick(again)).decision.walk == (0.0, 0.0, 0.0) and pilot.standstill.attempts == 2
+    pilot.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: it ends, and none again
+    assert pilot.handle(Tick(again + 0.1)).decision.walk == pytest.approx(pilot.command)
+    assert not pilot._calibration_standstill(again + 2 * p.standstill_interval, start=True)  # noqa: SLF001
     nowhere = Pilot(CONFIG, INFO)  # from far outside the room no marker is big enough to detect
     nowhere.pose, nowhere.anchored = (40.0, 40.0, 0.0), True
     nowhere.ekf.initialize((41.0, 40.0, 0.0), 0.0, 0.1)
     assert not nowhere._calibration_standstill(0.0, start=True) and not nowhere._calibration_standstill(1.0)  # noqa: SLF001
-    applied = Pilot(CONFIG, INFO)
-    applied.ekf.initialize((1.0, 0.0, 0.0), 0.0, 0.1)
-    applied.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: no standstill
-    assert not applied._calibration_standstill(0.0, start=True)  # noqa: SLF001
+    assert nowhere.standstill.attempts == 0
 
 
 def test_after_the_decision_frames_no_longer_change_the_estimate():
