@@ -48,13 +48,12 @@ read for a frame are those of its capture stamp, and a stamp a few milliseconds 
 speed tilts the fix's camera by a few milliradians, which the pitch-held bundle adjustment takes
 for a vertical focal or principal point error (measured in the matrix: two such fixes of eight,
 2.3 and 0.8 px off in v, put the vertical focal scale 0.7 % off with a stated std of 0.06 %). A
-mission stands while it searches and localizes; when it finds the object at once, it stands at the
-start of ACTIVE for at most ``standstill`` s with the head alternating between the object and,
-``standstill_dwell`` s each (time to get there and settle), the ``standstill_views`` head
-directions predicted from its pose to show a fix to store, most points first and
-``standstill_view_spacing`` apart in yaw (station/pilot.py), until an estimate is applied, or
-sooner when no fix to store came for ``standstill_patience`` s; not at all when no direction is
-predicted to show one (a sparse layout rarely shows two markers at once).
+mission stands while it searches and localizes; ACTIVE starts with a standstill whose head
+alternates between the object and the ``standstill_views`` head directions predicted from its pose
+to show a fix to store, most points first and ``standstill_view_spacing`` apart in yaw, each dwell
+counted from the head's arrival, and stands again later while no estimate is applied
+(agent/standstill.py); not where no direction is predicted to show one (a sparse layout rarely
+shows two markers at once).
 
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
 on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
