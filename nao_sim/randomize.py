@@ -5,7 +5,7 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
 
 * a landmark layout from ``layouts`` (walls at several heights, the low ring, repeated colours,
   mixed, sparse), with the room size the layout was written for;
-* an object from ``objects`` (named scenarios of real sizes and shapes: cans, boxes, a mug, a
+* an object from ``objects`` (named scenarios of real sizes and shapes: cans, a bottle, a bucket, boxes, a mug, a
   figure, meshes), moved by up to ``object_offset`` from its place and turned at random;
 * the start: at a distance U(``start_distance``) from the object and an azimuth U(-pi, pi), with
   the object U(-``start_bearing``, ``start_bearing``) off the heading;
