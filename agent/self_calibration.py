@@ -95,6 +95,7 @@ class SelfCalibrationParams:
     iterations: int = field(metadata=bounds(1, 100))
     standstill: float = field(metadata=bounds(0.0, 60.0))  # s a standstill lasts at most (agent/standstill.py)
     standstill_dwell: float = field(metadata=bounds(0.1, 60.0))  # s the head stays on each calibration view once there, between object dwells
+    standstill_fix_patience: float = field(metadata=bounds(0.1, 600.0))  # s without any landmark fix that end a standstill
     standstill_travel: float = field(metadata=bounds(0.0, 60.0))  # s after which a leg's dwell starts although no frame showed the head there
     standstill_attempts: int = field(metadata=bounds(0, 100))  # standstills in all, while no estimate is applied
     standstill_interval: float = field(metadata=bounds(0.0, 600.0))  # s from the end of one (or a try without a view) to the next

@@ -16,7 +16,10 @@ frame in a dwell counted from the command, and fixes are stored only once it has
 object legs keep it in view (the mission ends ``object_lost`` after ``object_lost_timeout``).
 
 A standstill ends after ``standstill`` s, or when a whole cycle of its views stored no fix
-(sparse markers, a view the prediction got wrong), or when the estimate is applied. One that ended
+(sparse markers, a view the prediction got wrong), or when no landmark fix at all came for
+``standstill_fix_patience`` s (the mission ends ``landmarks_lost`` after
+``mission.landmarks_lost_timeout`` without one, and walking brings the landmark lookout), or when
+the estimate is applied. One that ended
 without an applied estimate is tried again ``standstill_interval`` s later from wherever the walk
 has taken the robot (new views, new geometry), ``standstill_attempts`` standstills in all. A try
 from where no direction is predicted to show a fix to store is no standstill and no attempt.
@@ -50,6 +53,7 @@ class CalibrationStandstill:
         self._target: Optional[Head] = None  # the leg's target, as last returned
         self._leg_stored = False  # a fix was stored during this view leg
         self._fruitless = 0  # view legs in a row that stored no fix
+        self._last_fix = -math.inf  # when the localizer last gave a fix (stored or not)
 
     def due(self, t: float) -> bool:
         """May a standstill start now: none under way, attempts left, ``standstill_interval`` since the last try."""
@@ -72,7 +76,9 @@ class CalibrationStandstill:
         if self._start is None:
             return False
         self._advance(t)
-        if t - self._start >= self.params.standstill or self._fruitless >= len(self.views):
+        p = self.params
+        if (t - self._start >= p.standstill or self._fruitless >= len(self.views)
+                or t - max(self._start, self._last_fix) >= p.standstill_fix_patience):
             self.stop(t)
         return self._start is not None
 
@@ -94,6 +100,10 @@ class CalibrationStandstill:
         if (self._start is not None and self._arrived is None and target is not None
                 and max(abs(yaw - target[0]), abs(pitch - target[1])) <= self.head_tolerance):
             self._arrived = t
+
+    def on_fix(self, t: float) -> None:
+        """The localizer gave a landmark fix at ``t`` (stored or not)."""
+        self._last_fix = t
 
     def on_stored(self, t: float) -> None:
         """The self-calibration stored a fix at ``t``."""

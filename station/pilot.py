@@ -297,6 +297,7 @@ class Pilot:
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
             self.standstill.on_head(t, meta.head_yaw, meta.head_pitch)
             if fix is not None:
+                self.standstill.on_fix(t)
                 stored = self.calibration.stored
                 if self.calibration.add(fix, meta.stamp):
                     self._recalibrated(step, t)

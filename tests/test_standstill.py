@@ -38,6 +38,7 @@ def follow(standstill: CalibrationStandstill, t0: float, t1: float, speed: float
         step = speed * dt
         head = tuple(h + max(-step, min(step, g - h)) for h, g in zip(head, target))
         standstill.on_head(t, *head)
+        standstill.on_fix(t)  # landmark fixes come all along: only the views' are stored
         if store_every and target != OBJECT and head == target and t - last_store >= store_every:
             standstill.on_stored(t)
             last_store = t
@@ -82,6 +83,15 @@ def test_it_ends_after_a_cycle_of_views_without_a_fix_or_when_its_time_is_up():
     trace = follow(fruitful, 0.0, 60.0, store_every=0.5)
     assert trace[-1][0] == pytest.approx(PARAMS.standstill, abs=0.06)  # fixes keep coming: it lasts its full length
     assert not fruitful.standing(PARAMS.standstill)
+
+
+def test_it_ends_when_no_landmark_fix_came_for_its_patience():
+    """Before the mission's landmarks_lost_timeout: views that give no fix at all must not hold the robot there."""
+    standstill = schedule(standstill_fix_patience=3.0)
+    standstill.begin(10.0, VIEWS)
+    assert standstill.standing(12.9)  # the patience counts from the start, whenever the last fix was
+    standstill.on_fix(12.9)
+    assert standstill.standing(15.8) and not standstill.standing(15.95)
 
 
 def test_it_is_tried_again_later_a_few_times_and_a_try_without_a_view_is_no_attempt():
