@@ -288,7 +288,7 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     for yaw, pitch in views:
         points, landmarks = pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(yaw, pitch))
         assert points >= p.min_points and landmarks >= p.min_landmarks
-    over = 0.2 + p.standstill + 0.01  # the standstill is bounded (no fix was stored: it ends sooner)
+    over = 0.2 + p.standstill + 0.01  # the standstill is bounded (no landmark fix came at all: it ended sooner)
     assert not pilot._calibration_standstill(over)  # noqa: SLF001
     pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
     assert pilot.handle(Tick(over)).decision.walk == pytest.approx(pilot.command)
