@@ -40,6 +40,7 @@ from enum import Enum
 from typing import Optional, Tuple
 
 from nao_core.config import bounds
+from nao_core.robot_model import head_at
 
 
 class Phase(str, Enum):
@@ -238,10 +239,7 @@ class Mission:
         return self._head_at(0.0, self.params.init_pitch)
 
     def _head_at(self, yaw: float, pitch: float) -> bool:
-        if self._head is None:
-            return False
-        tol = self.params.head_tolerance
-        return abs(self._head[0] - yaw) <= tol and abs(self._head[1] - pitch) <= tol
+        return self._head is not None and head_at(self._head, (yaw, pitch), self.params.head_tolerance)
 
     def _stop_decision(self) -> Decision:
         return Decision(self.phase, walk=(0.0, 0.0, 0.0), stop=True, outcome=self.outcome, reason=self.reason)

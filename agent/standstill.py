@@ -31,6 +31,7 @@ import math
 from typing import List, Optional, Tuple
 
 from agent.self_calibration import SelfCalibrationParams
+from nao_core.robot_model import head_at
 
 Head = Tuple[float, float]  # (yaw, pitch), rad
 
@@ -98,7 +99,7 @@ class CalibrationStandstill:
         self._advance(t)
         target = self._target
         if (self._start is not None and self._arrived is None and target is not None
-                and max(abs(yaw - target[0]), abs(pitch - target[1])) <= self.head_tolerance):
+                and head_at((yaw, pitch), target, self.head_tolerance)):
             self._arrived = t
 
     def on_fix(self, t: float) -> None:

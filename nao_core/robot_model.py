@@ -80,6 +80,11 @@ class CameraSpec:
         return self.resolutions[resolution]
 
 
+def head_at(head: Tuple[float, float], target: Tuple[float, float], tolerance: float) -> bool:
+    """Are the head angles (yaw, pitch) within ``tolerance`` rad of ``target`` on both joints (a NaN angle is not)?"""
+    return abs(head[0] - target[0]) <= tolerance and abs(head[1] - target[1]) <= tolerance
+
+
 @dataclass(frozen=True)
 class HeadLimits:
     """Joint limits (rad) and speed (rad/s); pitch limits interpolated in ``pitch_by_yaw`` rows."""

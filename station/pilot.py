@@ -101,7 +101,7 @@ from agent.self_calibration import SelfCalibration
 from agent.standstill import CalibrationStandstill
 from nao_core.geometry import Pose, camera_in_world, compose, relative, wrap_angle
 from nao_core.protocol import Info
-from nao_core.robot_model import RobotModel
+from nao_core.robot_model import RobotModel, head_at
 from station.config import StationConfig
 from station.events import BridgeLost, Event, FrameReceived, Interrupted, Replan, StateReceived, Tick
 from station.outputs import (
@@ -490,7 +490,7 @@ class Pilot:
             return True
         target, p = self._object_gaze, self.config.mission
         if t - self._t_back >= p.lookout_settle or (
-                target is not None and max(abs(head[0] - target[0]), abs(head[1] - target[1])) <= p.head_tolerance):
+                target is not None and head_at(head, target, p.head_tolerance)):
             self._t_back = None
         return self._t_back is None
 
