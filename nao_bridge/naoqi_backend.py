@@ -23,7 +23,11 @@ the rest (a virtual robot, a stand-in) runs with one warning each, naming what i
 ALAutonomousLife or ALRobotPosture, the start skips that step; no ``ALMemory.subscriber``, the fall
 keys are polled with ``getData`` at every state read; a key ``getData`` does not know (an event never
 raised, a robot without the battery key) reads as not fallen, or as an unknown charge (``None``).
-Images in RGB (kRGBColorSpace, 11) are decoded as well as the two colour spaces the bridge asks for.
+Without ``ALMotion.moveIsActive`` walking is taken as commanded, and without ``killMove`` an
+unconfirmed stop escalates to ``stopMove`` and ``rest`` (``OPTIONAL_MOTION``). Images answered in
+another colour space than asked are decoded when it is RGB (11), YUV (10) or luma only (0, grey);
+images of another size than subscribed, with the same aspect, are resized to it (one warning);
+another aspect drops the frame with an error naming both sizes.
 
 Clocks. Image stamps are the robot's clock; the bridge's is ``time.time()``. The offset between
 them is measured two ways:
@@ -92,6 +96,8 @@ from nao_core.naoqi_api import (
     RESOLUTION_IDS,
     RGB_COLOR_SPACE,
     TOP_CAMERA,
+    Y_COLOR_SPACE,
+    YUV_COLOR_SPACE,
     error_line,
 )
 from nao_core.records import CameraFrame, RobotState
@@ -122,9 +128,16 @@ class NaoqiParams:
     client_name: str
 
 
+# ALMotion methods a stand-in or a virtual robot may lack -> what the bridge does without them
+OPTIONAL_MOTION = {
+    "moveIsActive": "walking is taken as commanded, so a stop counts as confirmed once stopMove returns",
+    "killMove": "a stop that moveIsActive does not confirm is escalated with stopMove, then rest",
+}
+
 # colour space id -> (bytes per pixel, OpenCV conversion to BGR or None)
 DECODERS = {COLOR_SPACE_IDS["bgr"]: (3, None), COLOR_SPACE_IDS["yuv422"]: (2, cv2.COLOR_YUV2BGR_YUYV),
-            RGB_COLOR_SPACE: (3, cv2.COLOR_RGB2BGR)}
+            RGB_COLOR_SPACE: (3, cv2.COLOR_RGB2BGR), YUV_COLOR_SPACE: (3, cv2.COLOR_YUV2BGR),
+            Y_COLOR_SPACE: (1, cv2.COLOR_GRAY2BGR)}
 
 
 def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes, bytearray, str]) -> np.ndarray:
@@ -200,7 +213,7 @@ class NaoqiBackend(RobotBackend):
         self._probe_count = 0
         self._next_probe = -math.inf  # time.monotonic() of the next clock probe; inf once probing failed
         self.clock_source = "camera"  # "probe" while the probe's offset agrees with the camera bound, "synchronized"
-        self._clock_warned: Set[str] = set()
+        self._warned_reasons: Set[str] = set()
         self._last_stamp: Optional[tuple] = None
         self._closed = False
         self._close_lock = threading.Lock()
@@ -211,9 +224,11 @@ class NaoqiBackend(RobotBackend):
         self._sampler: Optional[threading.Thread] = None
         self._stop_sampling = threading.Event()
         intrinsics = model.camera.intrinsics(resolution)
+        self.image_size = (int(intrinsics.width), int(intrinsics.height))
         self.latency = LatencyEstimator(params.camera_latency_max, float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width))
         self._logged_latency = 0.0
         self._last_drop_log = -math.inf
+        self._walk_commanded = False  # the last walk command was not a stop: "walking" without moveIsActive
 
     def start(self) -> None:
         session = qi.Session()
@@ -228,6 +243,9 @@ class NaoqiBackend(RobotBackend):
         if self.params.disable_autonomous_life:
             self._optional("ALAutonomousLife", lambda: session.service("ALAutonomousLife").setState("disabled"),
                            "autonomous life stays as it is and may move the head or the body during the mission")
+        for method, lost in OPTIONAL_MOTION.items():
+            if not hasattr(self.motion, method):
+                log.warning("NAOqi ALMotion.%s unavailable: %s", method, lost)
         self.motion.wakeUp()
         if self.params.stand_init_at_start:
             self._optional("ALRobotPosture",
@@ -298,12 +316,12 @@ class NaoqiBackend(RobotBackend):
             return
         self._next_probe = time.monotonic() + 1.0 / self.params.clock_probe_rate
         self._probe_count += 1
-        sent = time.time()
-        self.memory.insertData(CLOCK_PROBE_KEY, self._probe_count)
-        answered = time.time()
         try:
+            sent = time.time()
+            self.memory.insertData(CLOCK_PROBE_KEY, self._probe_count)
+            answered = time.time()
             value, seconds, micros = self.memory.getTimestamp(CLOCK_PROBE_KEY)
-        except Exception as exc:  # noqa: BLE001 - an ALMemory without getTimestamp: the camera bound alone
+        except Exception as exc:  # noqa: BLE001 - an ALMemory without insertData or getTimestamp: the camera bound alone
             self._next_probe = math.inf
             log.warning("NAOqi clock probe unavailable (%s): frames stamped by the camera's latency bound", exc)
             return
@@ -362,7 +380,7 @@ class NaoqiBackend(RobotBackend):
     def _frame(self, image: Sequence[Any], robot_stamp: float, received: float) -> Optional[CameraFrame]:
         """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
         stamp = self._capture_stamp(robot_stamp, received)
-        bgr = image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6])
+        bgr = self._to_subscribed_size(image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6]))
         if self.clock_source == "camera":
             self._learn_latency(bgr, stamp + self.latency.tau)
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
@@ -381,6 +399,21 @@ class NaoqiBackend(RobotBackend):
             T_BC=nao_to_optical(kin.T),
             odom=kin.odom,
         )
+
+    def _to_subscribed_size(self, bgr: np.ndarray) -> np.ndarray:
+        """The image at the subscribed resolution. A NAOqi answering another size of the same sensor
+        (the same aspect) is resized, which keeps the pinhole model (every NAO resolution bins the
+        whole sensor); another aspect raises ``ValueError`` naming both sizes."""
+        width, height = self.image_size
+        got_height, got_width = bgr.shape[:2]
+        if (got_width, got_height) == (width, height):
+            return bgr
+        if got_width * height != got_height * width:
+            raise ValueError(f"image of {got_width}x{got_height}: not the {width}x{height} ({self.resolution}) "
+                             "subscribed, nor the same aspect")
+        self._warn_once("size", f"NAOqi serves {got_width}x{got_height} images for the {width}x{height} "
+                         f"({self.resolution}) subscription: resized to {width}x{height}")
+        return cv2.resize(bgr, (width, height), interpolation=cv2.INTER_AREA if got_width > width else cv2.INTER_LINEAR)
 
     def _learn_latency(self, bgr: np.ndarray, bound_stamp: float) -> None:
         """Feed the camera-latency estimator (nao_bridge/camera_latency.py) the frame, its camera-bound
@@ -407,29 +440,31 @@ class NaoqiBackend(RobotBackend):
             if -error - 1e-3 <= shortest_latency <= self.params.camera_latency_max:
                 self.clock_source = "probe"
                 return robot_stamp + offset
-            self._warn_clock("negative" if shortest_latency < 0.0 else "too long",
+            self._warn_once("negative" if shortest_latency < 0.0 else "too long",
                              f"NAOqi clock probe disagrees with the camera (shortest latency {shortest_latency:.3f} s): "
                              "ALMemory and the camera stamp on different clocks?")
         if self.params.camera_latency_min <= self._clock.bound <= self.params.camera_latency_max:
             self.clock_source = "synchronized"  # robot stamps already on the bridge clock, as NTP keeps them
-            self._warn_clock("synchronized", f"NAOqi image stamps agree with this clock (shortest latency "
+            self._warn_once("synchronized", f"NAOqi image stamps agree with this clock (shortest latency "
                              f"{self._clock.bound:.3f} s): clocks taken as synchronized, frames stamped as the robot stamps them")
             return robot_stamp
         self.clock_source = "camera"
-        self._warn_clock("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
+        self._warn_once("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
                          "latency bound less the latency its images show (docs/frames.md)")
         return camera_stamp - self.latency.tau
 
-    def _warn_clock(self, reason: str, message: str) -> None:
-        if reason not in self._clock_warned:
-            self._clock_warned.add(reason)
+    def _warn_once(self, reason: str, message: str) -> None:
+        if reason not in self._warned_reasons:
+            self._warned_reasons.add(reason)
             log.warning(message)
 
     def walk(self, v: float, vy: float, omega: float) -> None:
         self.motion.move(float(v), float(vy), float(omega))
+        self._walk_commanded = (v, vy, omega) != (0.0, 0.0, 0.0)
 
     def stop_walking(self) -> None:
         self.motion.stopMove()
+        self._walk_commanded = False
 
     @property
     def remote(self) -> bool:
@@ -437,10 +472,15 @@ class NaoqiBackend(RobotBackend):
         return host not in ("127.0.0.1", "localhost", "::1")
 
     def move_is_active(self) -> bool:
-        return bool(self.motion.moveIsActive())
+        if hasattr(self.motion, "moveIsActive"):
+            return bool(self.motion.moveIsActive())
+        return self._walk_commanded
 
     def kill_move(self) -> None:
-        self.motion.killMove()
+        if hasattr(self.motion, "killMove"):
+            self.motion.killMove()
+        else:
+            self.stop_walking()
 
     def rest(self) -> None:
         self.motion.rest()
@@ -469,7 +509,7 @@ class NaoqiBackend(RobotBackend):
             odom=(float(odom[0]), float(odom[1]), float(odom[2])),
             head_yaw=float(yaw),
             head_pitch=float(pitch),
-            walking=bool(self.motion.moveIsActive()),
+            walking=self.move_is_active(),
             fallen=self._fallen.is_set(),
             battery=None if battery is None else min(max(battery, 0.0), 1.0),
         )

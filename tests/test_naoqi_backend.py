@@ -29,10 +29,10 @@ from nao_bridge.naoqi_backend import (
 )
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
-from nao_core.naoqi_api import CLOCK_PROBE_KEY, RGB_COLOR_SPACE
+from nao_core.naoqi_api import CLOCK_PROBE_KEY, RESOLUTION_IDS, RGB_COLOR_SPACE, Y_COLOR_SPACE, YUV_COLOR_SPACE
 from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.scenarios import load_sim_config
-from nao_sim.standin import CameraDelivery, StandIn
+from nao_sim.standin import ALMotion, ALVideoDevice, CameraDelivery, StandIn
 from nao_sim.world import SimWorld
 
 MODEL = load_robot_model()
@@ -68,7 +68,7 @@ def test_yuv422_round_trip_keeps_colours():
 
 @pytest.mark.parametrize(
     "width, height, space, size, message",
-    [(8, 6, BGR, 10, "expected 8x6x3"), (8, 6, 10, 144, "colour space 10"), (8, 6, YUV422, 144, "expected 8x6x2")],
+    [(8, 6, BGR, 10, "expected 8x6x3"), (8, 6, 6, 144, "colour space 6"), (8, 6, YUV422, 144, "expected 8x6x2")],
 )
 def test_bad_image_buffers_are_named(width, height, space, size, message):
     with pytest.raises(ValueError, match=message):
@@ -444,6 +444,74 @@ def test_a_bare_naoqi_runs_the_backend_and_each_thing_it_lacks_is_named(caplog):
         assert np.array_equal(frame.image, truth)  # RGB decoded to BGR, losslessly
     assert standing.battery is None and not standing.fallen
     assert fallen.fallen  # robotHasFallen polled with getData once the event was raised
+
+
+class MotionWithoutMoveState(ALMotion):
+    """An ALMotion as another stand-in may serve it: no ``moveIsActive``, no ``killMove``."""
+
+    moveIsActive = None  # not callable: not served
+    killMove = None
+
+
+class VideoOfAnotherSize(ALVideoDevice):
+    """Serves the world's resolution whatever was subscribed, in ``served`` (kYUV 10 or luma-only 0)."""
+
+    def __init__(self, standin: StandIn, served: int):
+        super().__init__(standin.world, standin._record, standin.delivery)
+        self.served = served
+
+    def subscribeCamera(self, name: str, camera: int, resolution: int, color_space: int, fps: int) -> str:
+        return super().subscribeCamera(name, camera, RESOLUTION_IDS[self._world.resolution], BGR, fps)
+
+    def _image(self, capture: float, color_space: int):
+        image, stamps = super()._image(capture, BGR)
+        bgr = np.frombuffer(image[6].encode("latin-1"), np.uint8).reshape(image[1], image[0], 3)
+        pixels = cv2.cvtColor(bgr, cv2.COLOR_BGR2YUV if self.served == YUV_COLOR_SPACE else cv2.COLOR_BGR2GRAY)
+        image[2], image[3], image[6] = 1 if pixels.ndim == 2 else 3, self.served, pixels.tobytes().decode("latin-1")
+        return image, stamps
+
+
+@pytest.mark.parametrize("served", [YUV_COLOR_SPACE, Y_COLOR_SPACE])
+def test_a_naoqi_written_by_others_serving_another_size_and_colour_space_without_move_state(served, caplog):
+    """VGA images for a QVGA subscription, in kYUV or luma only, and an ALMotion without moveIsActive
+    or killMove: the frames arrive at the subscribed size, as the rendered image resized; walking is
+    what was commanded; killMove falls back to stopMove; each loss is named once."""
+    world = SimWorld("can", MODEL, resolution="vga", seed=5)
+    renders = []
+    render = world.render
+    world.render = lambda at=None: renders.append(render(at)) or renders[-1]
+    with caplog.at_level("WARNING", logger="nao_bridge.naoqi_backend"):
+        standin = StandIn(world, latency=(0.03, 0.05), drop_rate=0.0)
+        standin.video = VideoOfAnotherSize(standin, served)
+        standin.services.update(ALMotion=MotionWithoutMoveState(world, standin._record), ALVideoDevice=standin.video)
+        with standin:
+            backend = backend_for(standin)  # asks for QVGA
+            backend.start()
+            grabs = [(backend.grab_frame(2.0), standin.video.captures[-1][1]) for _ in range(3)]
+            backend.walk(0.05, 0.0, 0.0)
+            walking = backend.read_state().walking
+            backend.stop_walking()
+            stopped = backend.read_state().walking
+            backend.walk(0.05, 0.0, 0.0)
+            backend.kill_move()
+            killed = (backend.move_is_active(), [c.name for c in standin.calls if c.name in ("ALMotion.move", "ALMotion.stopMove")][-1])
+            backend.close()
+    warnings = [r.getMessage() for r in caplog.records]
+    for lost in ("ALMotion.moveIsActive unavailable", "ALMotion.killMove unavailable", "640x480 images for the 320x240"):
+        assert sum(lost in w for w in warnings) == 1, lost
+    for frame, stamp in grabs:
+        truth = cv2.resize(next(r for r in renders if r.stamp == stamp).image, (320, 240), interpolation=cv2.INTER_AREA)
+        if served == Y_COLOR_SPACE:
+            truth = cv2.cvtColor(cv2.cvtColor(truth, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+        assert frame.image.shape == (240, 320, 3)
+        assert np.abs(frame.image.astype(int) - truth.astype(int)).mean() < 1.5  # the YUV or grey round trip's rounding
+    assert walking and not stopped and killed == (False, "ALMotion.stopMove")
+
+
+def test_an_image_of_another_aspect_is_refused_naming_both_sizes():
+    backend = NaoqiBackend("tcp://127.0.0.1:9", MODEL, NAOQI_PARAMS, "qvga", 15.0)
+    with pytest.raises(ValueError, match="320x180.*320x240"):
+        backend._to_subscribed_size(np.zeros((180, 320, 3), np.uint8))
 
 
 def test_unreachable_robot_is_a_connection_error_naming_the_url():
