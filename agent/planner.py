@@ -6,7 +6,7 @@ holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 
-    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + mu |w|^2 + c_clear
+    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + mu |w|^2 + c_clear + c_wall
 
 evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{t+D}):
 
@@ -36,6 +36,9 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
                        uncertainty margin: k sigma of the distance to the surface s = |o - p| - r,
                        m_k = min(k sqrt(g_k^T P g_k), m_max), g_k = ds/d(o, r) = (u_k, -1),
                        u_k = (o - p_k) / |o - p_k| (current P: where the true object may be now).
+    c_wall             hard keep-in (given a :class:`agent.keep_in.KeepIn`): W_clear sum_k sum_j
+                       max(0, m_wall - s_j(p_k))^2, s_j the distance in front of wall j, m_wall
+                       ``wall_clearance``: the robot keeps off the walls the landmark map shows.
 
 Optimizers (same cost, warm-started with the previous solution shifted by one step):
 
@@ -66,6 +69,7 @@ from scipy.optimize import minimize
 from agent.camera import CameraModel
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
+from agent.keep_in import KeepIn
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import wrap_angle
@@ -130,6 +134,7 @@ class PlannerParams:
     clearance: float = field(metadata=bounds(0.0, 10.0))  # never closer to the estimated surface, m
     clearance_sigmas: float = field(metadata=bounds(0.0, 100.0))  # k: margin of k sigma of the surface distance
     clearance_margin_max: float = field(metadata=bounds(0.0, 10.0))  # m_max: the margin's cap, m
+    wall_clearance: float = field(metadata=bounds(0.0, 10.0))  # m_wall: the robot's centre keeps this far off a wall, m
     omnidirectional: bool  # also choose a lateral speed v_y per plan (unicycle when false)
     max_range: float = field(metadata=bounds(0.1, 100.0))  # the object is measurable up to this distance, m
     uncertainty_form: Literal["relative", "paper"]
@@ -236,6 +241,11 @@ def clearance_cost(distances: np.ndarray, radius: float, clearance: float, margi
     return CLEARANCE_WEIGHT * np.sum(np.square(np.maximum(radius + clearance + margin - distances, 0.0)), axis=-1)
 
 
+def wall_cost(distances: np.ndarray, wall_clearance: float) -> np.ndarray:
+    """W_clear sum_k sum_j max(0, m_wall - s_jk)^2 of distances (K, D, J) in front of the walls."""
+    return CLEARANCE_WEIGHT * np.sum(np.square(np.maximum(wall_clearance - distances, 0.0)), axis=(-2, -1))
+
+
 # --- planner ------------------------------------------------------------------------------------
 
 
@@ -246,7 +256,7 @@ class Plan:
     omegas: np.ndarray  # (D,) rad/s
     command: Tuple[float, float, float]  # (v, vy, omega) within the walk limits
     cost: float
-    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, clearance
+    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, vertical, clearance, wall
     evaluations: int  # candidate sequences whose cost was computed
     lateral_speed: float = 0.0  # v_y over the horizon, m/s (0 unless omnidirectional)
     clearance_margin: float = 0.0  # the uncertainty margin m at the robot's next position, m
@@ -320,12 +330,15 @@ class Planner:
         self._previous = None
 
     def cost_function(
-        self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray, height: Optional[float] = None
+        self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray, height: Optional[float] = None,
+        keep_in: Optional[KeepIn] = None,
     ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
-        """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief."""
+        """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief;
+        ``keep_in``: the walls to keep off (robot_pose in the landmark map's frame)."""
         p, w = self.params, self.params.weights
         target = x[:2]
         height = p.object_height if height is None else height
+        walls = None if keep_in is None else keep_in.walls(x)
 
         def evaluate(decisions: np.ndarray) -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
             omegas, lateral = self._split(decisions)
@@ -346,6 +359,8 @@ class Planner:
                 "clearance": clearance_cost(
                     dist, x[2], p.clearance, clearance_margin(poses, x, P, p.clearance_sigmas, p.clearance_margin_max)
                 ),
+                "wall": (np.zeros(len(poses)) if walls is None or not walls.any()
+                         else wall_cost(keep_in.distances(poses[..., :2], walls), p.wall_clearance)),
             }
             return sum(terms.values()), terms
 
@@ -360,11 +375,12 @@ class Planner:
         cost = vertical_view_cost(distance, yaw, float(x[2]), height, self.vertical_view, self.params.vertical_margin)
         return self.params.weights.vertical * cost
 
-    def plan(self, robot_pose, x, P, coverage: Coverage, object_height: Optional[float] = None) -> Plan:
+    def plan(self, robot_pose, x, P, coverage: Coverage, object_height: Optional[float] = None,
+             keep_in: Optional[KeepIn] = None) -> Plan:
         """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P).
 
         ``object_height``: the object's top above the floor, m, when the silhouettes bound it (else the
-        configured ``object_height``)."""
+        configured ``object_height``). ``keep_in``: the walls to keep off (c_wall), the pose in their frame."""
         robot_pose = _checked("robot_pose", robot_pose, (3,))
         x = _checked("x", x, (3,))
         P = _checked("P", P, (3, 3))
@@ -372,7 +388,7 @@ class Planner:
             raise ValueError(f"x: object radius must be positive, got {x[2]}")
         if object_height is not None and not (math.isfinite(object_height) and object_height > 0.0):
             raise ValueError(f"object_height: expected a positive height in m, got {object_height}")
-        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height)
+        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height, keep_in)
         optimize = self._cem if self.params.optimizer == "cem" else self._nelder_mead
         best, evaluations = optimize(evaluate, self._warm_start())
         total, terms = evaluate(best[None])

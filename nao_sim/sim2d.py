@@ -30,6 +30,7 @@ import numpy as np
 
 from agent.coverage import Coverage, bins_seen
 from agent.ekf import EKFParams, ObjectEKF, measure
+from agent.keep_in import KeepIn
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from agent.planner import Planner, PlannerParams, termination_reason
 from nao_core.geometry import wrap_angle
@@ -110,8 +111,10 @@ def simulate(
     seed: int,
     policy: Policy = "planner",
     max_steps: Optional[int] = None,
+    keep_in: Optional[KeepIn] = None,
 ) -> SimResult:
-    """Run one episode from robot pose ``start`` toward the cylinder ``truth`` = (xo, yo, r)."""
+    """Run one episode from robot pose ``start`` toward the cylinder ``truth`` = (xo, yo, r); the
+    planner keeps off the walls of ``keep_in`` if given."""
     truth = np.asarray(truth, dtype=float)
     pose = np.asarray(start, dtype=float).copy()
     p = planner_params
@@ -159,7 +162,7 @@ def simulate(
             omega = circle_omega(pose, first_estimate, p.d_min, p.speed, p.period, robot.walk.omega_max)
             command = robot.walk.clamp(p.speed, 0.0, omega)
         else:
-            plan = planner.plan(pose, ekf.x, ekf.P, coverage)
+            plan = planner.plan(pose, ekf.x, ekf.P, coverage, keep_in=keep_in)
             terms.append(plan.terms)
             command = plan.command  # already clamped to the walk limits by the planner
         command = np.array(command)

@@ -54,7 +54,9 @@ follow the object. The decision's reason then says ``landmark lookout``. No keyf
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
-object is nearer than ``mission.min_image_distance`` to the robot's origin by the image alone.
+object is nearer than ``mission.min_image_distance`` to the robot's origin by the image alone, and
+once anchored, one that approaches a wall the landmark map shows (agent/keep_in.py) nearer than
+``mission.wall_stop``; the planner itself keeps ``planner.wall_clearance`` off them.
 The image's surface point (camera C, distance d from agent/clearance.py along the measured
 azimuth a) is kept in the odometry frame O, independent of the landmark pose and the filter::
 
@@ -88,6 +90,7 @@ import numpy as np
 
 from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import image_distance
+from agent.keep_in import KeepIn
 from agent.coverage import Coverage
 from agent.ekf import ObjectEKF
 from agent.head_servo import ObjectHeight, head_target
@@ -178,6 +181,7 @@ class Pilot:
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
+        self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
         self.calibration = SelfCalibration(config.self_calibration, self.camera)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
@@ -495,16 +499,32 @@ class Pilot:
         return self._t_back is None
 
     def _clear(self, walk: Tuple[float, float, float]) -> Tuple[float, float, float]:
-        """The walk command, cut to its turn when it approaches the image's surface point, too near (module docstring)."""
+        """The walk command, cut to its turn when it approaches the image's surface point or a wall, too near
+        (module docstring)."""
+        if self._approaches_object(walk) or self._approaches_wall(walk):
+            return (0.0, 0.0, walk[2])
+        return walk
+
+    def _approaches_object(self, walk: Tuple[float, float, float]) -> bool:
         if self._near is None or self._odom is None:
-            return walk
+            return False
         dx, dy = self._near[0] - self._odom[0], self._near[1] - self._odom[1]
         if math.hypot(dx, dy) >= self.config.mission.min_image_distance:
-            return walk
+            return False
         bearing = math.atan2(dy, dx) - self._odom[2]
-        if walk[0] * math.cos(bearing) + walk[1] * math.sin(bearing) <= 1e-9:  # not approaching
-            return walk
-        return (0.0, 0.0, walk[2])
+        return walk[0] * math.cos(bearing) + walk[1] * math.sin(bearing) > 1e-9
+
+    def _approaches_wall(self, walk: Tuple[float, float, float]) -> bool:
+        """Nearer than ``wall_stop`` to a wall of the map (agent/keep_in.py) and walking towards it."""
+        if not self.anchored or self.pose is None or not self.ekf.initialized:
+            return False
+        nearest = self.keep_in.nearest(np.asarray(self.pose), self.ekf.x)
+        if nearest is None or nearest[0] >= self.config.mission.wall_stop:
+            return False
+        heading = self.pose[2]
+        towards = -(nearest[1] * math.cos(heading) + nearest[2] * math.sin(heading)) * walk[0] \
+            - (-nearest[1] * math.sin(heading) + nearest[2] * math.cos(heading)) * walk[1]
+        return towards > 1e-9
 
     def _control(self, step: Step, t: float) -> None:
         if self._t_active is None:
@@ -520,7 +540,7 @@ class Pilot:
         if reason is not None and reason.startswith("complete"):  # the time limit is the mission's
             self.mission.on_goal(t, reason)
             return
-        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top)
+        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, self.keep_in if self.anchored else None)
         self.command = plan.command
         step.outputs.append(PlanRecord(t, [float(w) for w in plan.omegas], tuple(map(float, plan.command)), float(plan.cost),
                                        {k: float(v) for k, v in plan.terms.items()}, int(plan.evaluations),

@@ -115,6 +115,27 @@ def test_walking_towards_an_object_the_image_shows_too_near_is_cut_to_the_turn()
     assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
 
 
+def test_walking_towards_a_wall_of_the_map_too_near_is_cut_to_the_turn():
+    """Anchored, with an object estimate inside the ring of boards (config/landmarks/sim_room.yaml):
+    nearer than ``wall_stop`` to the boards straight ahead, forward is cut to the turn; backing away
+    and walking along them are kept, and so is forward further in (agent/keep_in.py)."""
+    pilot = Pilot(CONFIG, INFO)
+    pilot.ekf.initialize((0.3, 0.0, math.pi), 0.0, 0.1)  # an object between the centre and x = 0.3 m
+    board = min(CONFIG.landmarks.of_kind("aruco"), key=lambda lm: abs(lm.position[1]) - lm.position[0])  # on the +x side
+    ahead = -board.normal[:2]
+    near = np.asarray(board.position[:2]) - 0.5 * CONFIG.mission.wall_stop * ahead
+    pilot.pose, pilot.anchored = (float(near[0]), float(near[1]), math.atan2(ahead[1], ahead[0])), True  # facing the board
+    assert pilot.keep_in.nearest(np.asarray(pilot.pose), pilot.ekf.x)[0] < CONFIG.mission.wall_stop
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.0, 0.0, 0.3)  # noqa: SLF001
+    assert pilot._clear((-0.1, 0.0, 0.3)) == (-0.1, 0.0, 0.3)  # noqa: SLF001
+    assert pilot._clear((0.0, 0.05, 0.3)) == (0.0, 0.05, 0.3)  # noqa: SLF001
+    inside = pilot.pose
+    pilot.pose = (0.5 * near[0], 0.5 * near[1], pilot.pose[2])
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
+    pilot.pose, pilot.anchored = inside, False  # the pose is in the odometry frame: the map's walls are not where it says
+    assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
+
+
 def test_the_images_surface_point_is_carried_by_odometry_once_out_of_view():
     """A flat object leaves the bottom of the image before the robot reaches it: the last measured
     surface point, kept in the odometry frame, still stops the walk once odometry brings it near."""

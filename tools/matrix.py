@@ -96,16 +96,20 @@ class MissionResult:
     focal_error: Optional[float] = None  # relative, the camera the mission ended with (module docstring)
     self_calibrated: bool = False  # a self-calibration estimate was applied
     filter_centre_error: Optional[float] = None  # m, the filter's centre (module docstring)
+    min_wall_distance: Optional[float] = None  # m, the true robot origin's least distance to a wall of the room
 
 
 class _ClearanceMonitor(threading.Thread):
-    """Samples the true robot pose every POLL s; keeps the least distance to the object's outline."""
+    """Samples the true robot pose every POLL s; keeps the least distance to the object's outline and
+    to the room's walls (at +-half_size)."""
 
     def __init__(self, world: RandomWorld):
         super().__init__(daemon=True)
         self._world = world
         self._outline = world.scenario.world_points()[:, :2]
+        self._half_size = world.config.room.half_size
         self.minimum = math.inf
+        self.wall = math.inf
         self.trace: List[Tuple[float, float, float, float]] = []  # (time, x, y, theta) of the true pose
         self._done = threading.Event()
 
@@ -114,6 +118,7 @@ class _ClearanceMonitor(threading.Thread):
             x, y, theta = self._world.true_pose()
             self.trace.append((time.time(), x, y, theta))
             self.minimum = min(self.minimum, float(np.hypot(*(self._outline - (x, y)).T).min()))
+            self.wall = min(self.wall, self._half_size - max(abs(x), abs(y)))
 
     def stop(self) -> float:
         self._done.set()
@@ -259,7 +264,8 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
-                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1], filter_centre_error=filter_centre_error)
+                         stopped, str(out), focal_error=focal[0], self_calibrated=focal[1], filter_centre_error=filter_centre_error,
+                         min_wall_distance=monitor.wall)
 
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
@@ -310,11 +316,12 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         iou = [r.iou for r in ok if r.iou is not None]
         dur = [r.duration for r in ok if r.duration is not None]
         focal = [r.focal_error for r in ok if r.focal_error is not None]
+        walls = [r.min_wall_distance for r in rows if r.min_wall_distance is not None]
         med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
         return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
                 f"{_fmt(max(centre) if centre else None, 1000)} | {med(filter_centre, 1000)} / "
                 f"{_fmt(max(filter_centre) if filter_centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
-                f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
+                f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {_fmt(min(walls) if walls else None, 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
                 f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
 
     objects = sorted({r.world["object"] for r in results})
@@ -330,23 +337,23 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
         f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
-        "origin to the object's outline); focal error: the camera the mission ended with against the world's, "
+        "origin to the object's outline), the wall distance the least from it to the room's walls; focal error: the camera the mission ended with against the world's, "
         f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | filter centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | filter centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | min wall distance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
         f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
-        "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | wall distance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
           f"{_fmt(r.filter_centre_error, 1000)} | {_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
-          f"{_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
+          f"{_fmt(r.min_wall_distance, 1, 3)} | {_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
           f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} |" for r in results],
     ]
     if len(done) < len(results):
