@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -101,6 +101,10 @@ class Coverage:
             params = dataclasses.replace(params, facing_angle=max(params.facing_angle - margin, 0.0))
         return bins_seen(np.asarray(x, dtype=float), self.cameras, params, self.hfov).any(axis=0)
 
-    def fraction(self, x: np.ndarray, margin: float = 0.0) -> float:
-        """N_v / N_0 of the executed path (``margin``: see :meth:`seen`)."""
-        return float(self.seen(x, margin).mean())
+    def fraction(self, x: np.ndarray, margin: float = 0.0, within: Optional[np.ndarray] = None) -> float:
+        """N_v / N_0 of the executed path (``margin``: see :meth:`seen`); of the bins ``within`` (N0,) bool
+        if given (those the walls leave reachable, agent/keep_in.py)."""
+        seen = self.seen(x, margin)
+        if within is None:
+            return float(seen.mean())
+        return float(seen[within].mean()) if within.any() else 0.0

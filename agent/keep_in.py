@@ -21,6 +21,17 @@ off every wall beats any that does not; when none can (a robot put down too near
 least violating one leads away from it. The pilot also cuts a walk command that approaches a wall
 nearer than ``wall_stop`` to its turn (station/pilot.py), the last line when the plan is late.
 Both act only once the robot's pose is in the map's frame (anchored).
+
+Walls can hide part of the object: bin i of the coverage (agent/coverage.py: at q_i = o + r n_i,
+seen from within alpha of its normal n_i) is reachable when some camera position
+
+    c = q_i + rho (cos(a_i + beta), sin(a_i + beta)),  |beta| <= alpha - margin,  rho >= clearance,
+
+keeps the object clearance (|c - o| - r >= clearance) and every wall's (s_j(c) >= m) (a grid of
+beta and rho up to ``REACH`` m). The mission's coverage target counts the reachable bins only
+(:func:`reachable_bins`, with the slack of ``Planner.reachable_bins``: the walk at constant speed
+needs its turn radius to get into a pocket and out), so an object too near a wall to go round
+completes with the views the room allows instead of walking its time limit out.
 """
 
 from __future__ import annotations
@@ -29,8 +40,10 @@ from typing import Optional
 
 import numpy as np
 
+from agent.coverage import CoverageParams, bin_angles
 from nao_core.landmark_map import LandmarkMap
 
+REACH = 1.0  # m beyond the object clearance searched for a camera position that sees a bin
 MIN_FACING = 0.5  # horizontal part of a marker's normal below which it does not face a wall (on the floor)
 
 
@@ -68,3 +81,22 @@ class KeepIn:
         distances = self.distances(np.asarray(position[:2], float), walls)
         j = int(np.argmin(distances))
         return np.array([distances[j], *self.normals[walls][j]])
+
+
+def reachable_bins(keep_in: KeepIn, x: np.ndarray, params: CoverageParams, clearance: float, wall_clearance: float,
+                   margin: float = 0.0) -> np.ndarray:
+    """Bins (N0,) of the cylinder x = (xo, yo, r) seen from some camera position off the object and
+    the walls (module docstring)."""
+    x = np.asarray(x, float)
+    walls = keep_in.walls(x)
+    a = bin_angles(params.bins)[:, None, None]
+    half = max(params.facing_angle - margin, 0.0)
+    beta = np.linspace(-half, half, 9)[None, :, None]
+    rho = np.linspace(clearance, clearance + REACH, 11)[None, None, :]
+    cx = x[0] + x[2] * np.cos(a) + rho * np.cos(a + beta)
+    cy = x[1] + x[2] * np.sin(a) + rho * np.sin(a + beta)
+    cams = np.stack(np.broadcast_arrays(cx, cy), axis=-1)  # (N0, beta, rho, 2)
+    ok = np.hypot(cx - x[0], cy - x[1]) - x[2] >= clearance
+    if walls.any():
+        ok &= np.all(keep_in.distances(cams, walls) >= wall_clearance, axis=-1)
+    return ok.any(axis=(1, 2))

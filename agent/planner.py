@@ -69,13 +69,14 @@ from scipy.optimize import minimize
 from agent.camera import CameraModel
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
-from agent.keep_in import KeepIn
+from agent.keep_in import KeepIn, reachable_bins
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import wrap_angle
 from nao_core.robot_model import RobotModel, WalkLimits
 
 CLEARANCE_WEIGHT = 1e6
+REACH_SLACK = 0.05  # m beyond the object clearance a bin's view must leave: the clearance margin of a converged estimate
 FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient
 
 
@@ -114,10 +115,13 @@ class TerminationParams:
     """Stop when coverage >= coverage and the position/radius std are below the thresholds, or after time_limit s.
 
     The coverage for termination counts bins within the facing angle minus ``facing_margin`` (rad).
+    With walls hiding part of the object, of the bins they leave reachable (``Planner.reachable_bins``),
+    and those count as covered once no new one was seen for ``stall`` s (station/pilot.py).
     """
 
     coverage: float = field(metadata=bounds(0.0, 1.0))
     facing_margin: float = field(metadata=bounds(0.0, 1.0))
+    stall: float = field(metadata=bounds(1.0, 1e4))  # s without a new reachable bin, walls hiding some, that ends the coverage
     position_std: float = field(metadata=bounds(0.0, 10.0))
     radius_std: float = field(metadata=bounds(0.0, 10.0))
     time_limit: float = field(metadata=bounds(0.0, 1e6))
@@ -406,6 +410,14 @@ class Planner:
             lateral_speed=vy,
             clearance_margin=float(clearance_margin(first, x, P, p.clearance_sigmas, p.clearance_margin_max)),
         )
+
+    def reachable_bins(self, x: np.ndarray, keep_in: KeepIn) -> np.ndarray:
+        """Coverage bins (N0,) of the estimate x seen from where the walk can go and turn back: off the
+        object's surface by clearance + ``REACH_SLACK`` and off the walls by wall_clearance plus the
+        turn radius v / omega_max, within the termination's facing margin (agent/keep_in.py)."""
+        p = self.params
+        return reachable_bins(keep_in, x, p.coverage, p.clearance + REACH_SLACK, p.wall_clearance + p.speed / self.omega_max,
+                              p.termination.facing_margin)
 
     def _split(self, decisions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Decisions (K, D[+1]) -> omegas (K, D) and lateral speeds (K,)."""

@@ -150,7 +150,8 @@ def simulate(
         hist["measurements"].append((phi, delta))
         hist["coverage"].append(true_seen.mean())
         if ekf.initialized:
-            covered = coverage.fraction(ekf.x, p.termination.facing_margin)
+            reachable = None if keep_in is None else planner.reachable_bins(ekf.x, keep_in)
+            covered = coverage.fraction(ekf.x, p.termination.facing_margin, reachable)
             done = termination_reason(covered, ekf.P, k * p.period, p.termination)
             if done is not None:
                 reason = done

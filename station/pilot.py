@@ -73,8 +73,10 @@ bottom row's angle below the optical axis, pitch >= pitch_c + atan2(r_y, r_z) wi
 (c_x, H - 1), which puts the old bottom row at the centre and the base back in view.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
 ``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
-(goal reached -> ``mission.on_goal``, the next tick stops the robot), else a new plan (its
-command goes out on the next tick).
+(once anchored, of the bins the map's walls leave reachable, ``Planner.reachable_bins``; with
+some hidden, those count as covered after ``termination.stall`` s without a new bin) (goal
+reached -> ``mission.on_goal``, the next tick stops the robot), else a new plan (its command goes
+out on the next tick).
 """
 
 from __future__ import annotations
@@ -193,6 +195,7 @@ class Pilot:
         self._unanchored: List[Tuple[float, Cam, float, Optional[float]]] = []  # (stamp, cam, phi, delta) in O
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
+        self._covered: Tuple[int, float] = (0, 0.0)  # the most bins the termination saw seen, and when
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
@@ -529,6 +532,7 @@ class Pilot:
     def _control(self, step: Step, t: float) -> None:
         if self._t_active is None:
             self._t_active = t
+            self._covered = (0, t)
         if self._t_plan is not None and t - self._t_plan < self.config.planner.period - 1e-9:
             return
         if not self.ekf.initialized:
@@ -536,8 +540,18 @@ class Pilot:
         self._t_plan = t
         x, P = self.ekf.x, self.ekf.P
         termination = self.config.planner.termination
-        reason = termination_reason(self.coverage.fraction(x, termination.facing_margin), P, t - self._t_active, termination)
+        reachable = self.planner.reachable_bins(x, self.keep_in) if self.anchored else None
+        covered = self.coverage.fraction(x, termination.facing_margin, reachable)
+        walled = reachable is not None and not reachable.all()
+        seen = int(self.coverage.seen(x, termination.facing_margin).sum())
+        if seen > self._covered[0]:
+            self._covered = (seen, t)
+        stalled = walled and t - self._covered[1] >= termination.stall
+        reason = termination_reason(1.0 if stalled else covered, P, t - self._t_active, termination)
         if reason is not None and reason.startswith("complete"):  # the time limit is the mission's
+            if walled:
+                reason += (f" ({int(reachable.sum())} of {reachable.size} bins reachable off the walls, {covered:.2f} of them seen"
+                           + (f", none new for {termination.stall:g} s)" if stalled else ")"))
             self.mission.on_goal(t, reason)
             return
         plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, self.keep_in if self.anchored else None)

@@ -136,6 +136,35 @@ def test_walking_towards_a_wall_of_the_map_too_near_is_cut_to_the_turn():
     assert pilot._clear((0.1, 0.0, 0.3)) == (0.1, 0.0, 0.3)  # noqa: SLF001
 
 
+def test_with_walls_hiding_part_of_the_object_its_reachable_bins_count_and_a_stall_completes():
+    """A converged object 0.3 m inside the ring of boards (config/landmarks/sim_room.yaml): the bins
+    facing the boards cannot be seen off both clearances. Seen from the other side only, the mission
+    goes on; with no new bin for ``termination.stall`` s it completes, and the reason says why."""
+    from agent.ekf import ObjectEKF
+    from station.outputs import PlanRecord
+
+    pilot = Pilot(CONFIG, INFO)
+    board = min(CONFIG.landmarks.of_kind("aruco"), key=lambda lm: abs(lm.position[1]) - lm.position[0])  # on the +x side
+    x = np.array([*(np.asarray(board.position[:2]) + 0.3 * board.normal[:2]), 0.05])
+    pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, x, np.diag([1e-3, 1e-3, 1e-3]) ** 2)
+    pilot.pose, pilot.anchored, pilot.mission.phase = (float(x[0]) - 0.7, float(x[1]), 0.0), True, Phase.ACTIVE
+    reachable = pilot.planner.reachable_bins(x, pilot.keep_in)
+    assert 0 < reachable.sum() < reachable.size
+    for a in np.linspace(-math.pi / 2, math.pi / 2, 7) + math.pi + math.atan2(board.normal[1], board.normal[0]):  # the inner side
+        c = x[:2] + 0.7 * np.array([math.cos(a), math.sin(a)])
+        pilot.coverage.add((c[0], c[1], a + math.pi))
+    stall = CONFIG.planner.termination.stall
+    for t in (0.0, 0.5 * stall):
+        step = pilot_module.Step()
+        pilot._control(step, t)  # noqa: SLF001
+        assert pilot.mission.outcome is None and isinstance(step.outputs[0], PlanRecord)
+    pilot._t_plan = None  # noqa: SLF001 - the next replan is due
+    pilot._control(pilot_module.Step(), stall + 1.0)  # noqa: SLF001
+    assert pilot.mission.outcome is Outcome.COMPLETED
+    assert f"{int(reachable.sum())} of {reachable.size} bins reachable off the walls" in pilot.mission.reason
+    assert f"none new for {stall:g} s" in pilot.mission.reason
+
+
 def test_the_images_surface_point_is_carried_by_odometry_once_out_of_view():
     """A flat object leaves the bottom of the image before the robot reaches it: the last measured
     surface point, kept in the odometry frame, still stops the walk once odometry brings it near."""
