@@ -14,9 +14,12 @@ sigma_px^2 (J^T J)^-1 with the torso-roll prior; agent/localization.py). A pose 
 the predicted position std is within the localizer's ``max_position_std``.
 
 Printed: per distance, the share of the orbit with a fix aimed and with a head turn, the median
-and worst predicted std, and the longest arc without any fix; the PNG (``-o``, default
-``layout.png``) draws the room from above with the landmarks and the orbit coloured by the aimed
-std, and the std along the orbit. Exit code 0 when every pose of the orbit at d_min has a fix with
+and worst predicted std, and the longest arc without any fix; the walls the map shows
+(agent/keep_in.py) and how many of the object's coverage bins the robot can see keeping off them
+and off the object (``Planner.reachable_bins`` for an object of ``--radius``); the PNG (``-o``,
+default ``layout.png``) draws the room from above with the landmarks, the line the robot keeps
+inside (``planner.wall_clearance`` off the walls) and the orbit coloured by the aimed std, and the
+std along the orbit. Exit code 0 when every pose of the orbit at d_min has a fix with
 a head turn at most, 1 otherwise (the layout leaves gaps: docs/landmarks.md says what to change),
 2 for a bad map, config or argument.
 """
@@ -33,7 +36,9 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
+from agent.keep_in import KeepIn
 from agent.localization import RobotLocalizer, head_directions
+from agent.planner import Planner
 from nao_core.config import ConfigError
 from nao_core.geometry import wrap_angle
 from nao_core.landmark_map import LandmarkMap, load_landmark_map
@@ -73,6 +78,16 @@ def step_degrees(text: str) -> float:
     return value
 
 
+def positive_radius(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a radius in metres, got {text!r}") from None
+    if not 0.0 < value < 5.0:
+        raise argparse.ArgumentTypeError(f"expected a radius in (0, 5) m, got {text!r}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--landmarks", type=Path, required=True, metavar="FILE", help="landmark map (YAML, docs/frames.md)")
     parser.add_argument("--object", type=object_position, required=True, metavar="X,Y", help="object position in the map's frame, m")
@@ -80,6 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", help="camera resolution (default: the station's)")
     parser.add_argument("--distances", type=distances, metavar="D1,D2,...", help="orbit radii, m (default 0.75, 1, 1.35 x planner d_min)")
     parser.add_argument("--step", type=step_degrees, default=5.0, metavar="DEG", help="azimuth step along the orbit, degrees")
+    parser.add_argument("--radius", type=positive_radius, default=0.05, metavar="R", help="object radius, m (for the walls' check)")
     parser.add_argument("-o", "--output", type=Path, default=Path("layout.png"), help="figure (PNG)")
 
 
@@ -144,7 +160,8 @@ def _cm(value: float) -> str:
     return "none" if not math.isfinite(value) else f"{100 * value:.1f} cm"
 
 
-def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: Sequence[OrbitPoint], limit: float) -> None:
+def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: Sequence[OrbitPoint], limit: float,
+         keep_in: KeepIn, wall_clearance: float, radius: float) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,6 +178,13 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
             top.plot(x, y, "o", color=lm.color if lm.color in ("green", "yellow", "magenta", "cyan", "blue") else "0.5",
                      mec="k", ms=7)
     top.plot(*obj, "s", color="tab:red", ms=9, label="object")
+    walls = keep_in.walls(np.array([*obj, radius]))
+    if walls.any():
+        lo, hi = top.get_xlim(), top.get_ylim()
+        gx, gy = np.meshgrid(np.linspace(*lo, 300), np.linspace(*hi, 300))
+        nearest = np.min(keep_in.distances(np.stack([gx, gy], axis=-1), walls), axis=-1)
+        top.contour(gx, gy, nearest, levels=[wall_clearance], colors="tab:brown", linestyles="--")
+        top.plot([], [], "--", color="tab:brown", label=f"{wall_clearance:g} m off the walls: the robot keeps inside")
     xy = np.array([[obj[0] + p.distance * math.cos(p.azimuth), obj[1] + p.distance * math.sin(p.azimuth)] for p in points])
     std = np.array([p.aimed_std for p in points])
     ok = std <= limit
@@ -215,7 +239,14 @@ def run(args: argparse.Namespace) -> int:
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")
     for line in summarize(points, limit, args.step):
         print(line)
-    draw(args.output, landmarks, args.object, points, limit)
+    keep_in = KeepIn(landmarks)
+    planner = Planner.for_robot(config.planner, robot, resolution)
+    reachable = planner.reachable_bins(np.array([*args.object, args.radius]), keep_in)
+    print(f"walls: {int(keep_in.walls(np.array([*args.object, args.radius])).sum())} landmark planes; keeping "
+          f"{config.planner.wall_clearance:g} m off them and {config.planner.clearance:g} m off the object, the robot can see "
+          f"{int(reachable.sum())} of the object's {reachable.size} coverage bins"
+          + ("" if reachable.all() else ": it is too near a wall to be seen from all round (docs/landmarks.md)"))
+    draw(args.output, landmarks, args.object, points, limit, keep_in, config.planner.wall_clearance, args.radius)
     print(f"figure: {args.output}")
     nominal = [p for p in points if p.distance == min(radii, key=lambda r: abs(r - d_min))]
     if any(p.aimed_std > limit and p.best_std > limit for p in nominal):

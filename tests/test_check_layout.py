@@ -30,6 +30,18 @@ def test_a_good_layout_passes_and_draws_the_figure(tmp_path, capsys):
     assert code == 0 and "everywhere" in out and png.stat().st_size > 10_000
 
 
+def test_the_walls_say_how_much_of_the_object_the_robot_can_see(tmp_path, capsys):
+    """The small 3 x 3 m room: from its middle the object is seen from all round; 0.6 m from a wall,
+    the bins facing it are out of reach (agent/keep_in.py), and the line is drawn either way."""
+    room = str(CONFIG_DIR / "landmarks" / "small_room.yaml")
+    for obj, everywhere in (("0,0", True), ("0.9,0", False)):
+        png = tmp_path / f"{obj}.png"
+        main(["--landmarks", room, "--object", obj, "--distances", "0.8", "--step", "45", "-o", str(png)])
+        line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("walls:"))
+        assert ("of the object's 36 coverage bins" in line) and ("36 of" in line) is everywhere
+        assert ("too near a wall" in line) is not everywhere and png.stat().st_size > 10_000
+
+
 def test_one_marker_leaves_gaps(tmp_path, capsys):
     """A single marker on one wall: from the far side of the object it is behind the robot's head
     range or seen edge-on; the verdict names the gap and the exit code is 1."""
