@@ -23,8 +23,10 @@ the rest (a virtual robot, a stand-in) runs with one warning each, naming what i
 ALAutonomousLife or ALRobotPosture, the start skips that step; no ``ALMemory.subscriber``, the fall
 keys are polled with ``getData`` at every state read; a key ``getData`` does not know (an event never
 raised, a robot without the battery key) reads as not fallen, or as an unknown charge (``None``).
-Without ``ALMotion.moveIsActive`` walking is taken as commanded, and without ``killMove`` an
-unconfirmed stop escalates to ``stopMove`` and ``rest`` (``OPTIONAL_MOTION``). Images answered in
+Without ``ALMotion.moveIsActive`` walking is taken as commanded, without ``killMove`` an
+unconfirmed stop escalates to ``stopMove`` and ``rest``, without ``wakeUp`` the robot is taken as
+standing (``OPTIONAL_MOTION``); without ``ALVideoDevice.subscribeCamera`` the camera is subscribed
+with the older ``subscribe`` (the active camera). Images answered in
 another colour space than asked are decoded when it is RGB (11), YUV (10) or luma only (0, grey);
 images of another size than subscribed, with the same aspect, are resized to it (one warning);
 another aspect drops the frame with an error naming both sizes.
@@ -130,6 +132,7 @@ class NaoqiParams:
 
 # ALMotion methods a stand-in or a virtual robot may lack -> what the bridge does without them
 OPTIONAL_MOTION = {
+    "wakeUp": "the robot is taken as already stiff and standing",
     "moveIsActive": "walking is taken as commanded, so a stop counts as confirmed once stopMove returns",
     "killMove": "a stop that moveIsActive does not confirm is escalated with stopMove, then rest",
 }
@@ -246,7 +249,8 @@ class NaoqiBackend(RobotBackend):
         for method, lost in OPTIONAL_MOTION.items():
             if not hasattr(self.motion, method):
                 log.warning("NAOqi ALMotion.%s unavailable: %s", method, lost)
-        self.motion.wakeUp()
+        if hasattr(self.motion, "wakeUp"):
+            self.motion.wakeUp()
         if self.params.stand_init_at_start:
             self._optional("ALRobotPosture",
                            lambda: session.service("ALRobotPosture").goToPosture("StandInit", self.params.stand_init_speed),
@@ -264,13 +268,12 @@ class NaoqiBackend(RobotBackend):
         self._sampler = threading.Thread(target=self._sample_loop, name="naoqi-kinematics", daemon=True)
         self._sampler.start()
         time.sleep(2.0 / self.params.kinematics_rate)  # the history spans the first capture, even one stamped early
-        self._camera = self.video.subscribeCamera(
-            self.params.client_name,
-            TOP_CAMERA,
-            RESOLUTION_IDS[self.resolution],
-            COLOR_SPACE_IDS[self.params.color_space],
-            int(round(self.fps)),
-        )
+        subscription = (RESOLUTION_IDS[self.resolution], COLOR_SPACE_IDS[self.params.color_space], int(round(self.fps)))
+        if hasattr(self.video, "subscribeCamera"):
+            self._camera = self.video.subscribeCamera(self.params.client_name, TOP_CAMERA, *subscription)
+        else:  # the NAOqi 1.x call, on the active camera (the top one unless changed)
+            log.warning("NAOqi ALVideoDevice.subscribeCamera unavailable: subscribed with subscribe() to the active camera")
+            self._camera = self.video.subscribe(self.params.client_name, *subscription)
         log.info("NAOqi at %s: camera %s %s at %g fps", self.url, self.resolution, self.params.color_space, self.fps)
 
     def _optional(self, service: str, step: Callable[[], Any], lost: str) -> None:

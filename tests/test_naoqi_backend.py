@@ -29,7 +29,7 @@ from nao_bridge.naoqi_backend import (
 )
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
-from nao_core.naoqi_api import CLOCK_PROBE_KEY, RESOLUTION_IDS, RGB_COLOR_SPACE, Y_COLOR_SPACE, YUV_COLOR_SPACE
+from nao_core.naoqi_api import CLOCK_PROBE_KEY, RESOLUTION_IDS, TOP_CAMERA, RGB_COLOR_SPACE, Y_COLOR_SPACE, YUV_COLOR_SPACE
 from nao_core.robot_model import load_robot_model, nao_to_optical
 from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import ALMotion, ALVideoDevice, CameraDelivery, StandIn
@@ -447,21 +447,25 @@ def test_a_bare_naoqi_runs_the_backend_and_each_thing_it_lacks_is_named(caplog):
 
 
 class MotionWithoutMoveState(ALMotion):
-    """An ALMotion as another stand-in may serve it: no ``moveIsActive``, no ``killMove``."""
+    """An ALMotion as another stand-in may serve it: no ``moveIsActive``, ``killMove`` or ``wakeUp``."""
 
     moveIsActive = None  # not callable: not served
     killMove = None
+    wakeUp = None
 
 
 class VideoOfAnotherSize(ALVideoDevice):
-    """Serves the world's resolution whatever was subscribed, in ``served`` (kYUV 10 or luma-only 0)."""
+    """Serves the world's resolution whatever was subscribed, in ``served`` (kYUV 10 or luma-only 0),
+    through NAOqi 1.x's ``subscribe`` only."""
+
+    subscribeCamera = None  # not callable: not served
 
     def __init__(self, standin: StandIn, served: int):
         super().__init__(standin.world, standin._record, standin.delivery)
         self.served = served
 
-    def subscribeCamera(self, name: str, camera: int, resolution: int, color_space: int, fps: int) -> str:
-        return super().subscribeCamera(name, camera, RESOLUTION_IDS[self._world.resolution], BGR, fps)
+    def subscribe(self, name: str, resolution: int, color_space: int, fps: int) -> str:
+        return ALVideoDevice.subscribeCamera(self, name, TOP_CAMERA, RESOLUTION_IDS[self._world.resolution], BGR, fps)
 
     def _image(self, capture: float, color_space: int):
         image, stamps = super()._image(capture, BGR)
@@ -473,9 +477,10 @@ class VideoOfAnotherSize(ALVideoDevice):
 
 @pytest.mark.parametrize("served", [YUV_COLOR_SPACE, Y_COLOR_SPACE])
 def test_a_naoqi_written_by_others_serving_another_size_and_colour_space_without_move_state(served, caplog):
-    """VGA images for a QVGA subscription, in kYUV or luma only, and an ALMotion without moveIsActive
-    or killMove: the frames arrive at the subscribed size, as the rendered image resized; walking is
-    what was commanded; killMove falls back to stopMove; each loss is named once."""
+    """VGA images for a QVGA subscription, in kYUV or luma only, through ``subscribe`` alone, and an
+    ALMotion without moveIsActive, killMove or wakeUp: the frames arrive at the subscribed size, as
+    the rendered image resized; walking is what was commanded; killMove falls back to stopMove;
+    each loss is named once."""
     world = SimWorld("can", MODEL, resolution="vga", seed=5)
     renders = []
     render = world.render
@@ -497,7 +502,8 @@ def test_a_naoqi_written_by_others_serving_another_size_and_colour_space_without
             killed = (backend.move_is_active(), [c.name for c in standin.calls if c.name in ("ALMotion.move", "ALMotion.stopMove")][-1])
             backend.close()
     warnings = [r.getMessage() for r in caplog.records]
-    for lost in ("ALMotion.moveIsActive unavailable", "ALMotion.killMove unavailable", "640x480 images for the 320x240"):
+    for lost in ("ALMotion.moveIsActive unavailable", "ALMotion.killMove unavailable", "ALMotion.wakeUp unavailable",
+                 "subscribeCamera unavailable", "640x480 images for the 320x240"):
         assert sum(lost in w for w in warnings) == 1, lost
     for frame, stamp in grabs:
         truth = cv2.resize(next(r for r in renders if r.stamp == stamp).image, (320, 240), interpolation=cv2.INTER_AREA)
