@@ -232,6 +232,7 @@ class NaoqiBackend(RobotBackend):
         self._logged_latency = 0.0
         self._last_drop_log = -math.inf
         self._walk_commanded = False  # the last walk command was not a stop: "walking" without moveIsActive
+        self._motion_lacks: Set[str] = set()  # of OPTIONAL_MOTION, found missing at start
 
     def start(self) -> None:
         session = qi.Session()
@@ -246,10 +247,10 @@ class NaoqiBackend(RobotBackend):
         if self.params.disable_autonomous_life:
             self._optional("ALAutonomousLife", lambda: session.service("ALAutonomousLife").setState("disabled"),
                            "autonomous life stays as it is and may move the head or the body during the mission")
-        for method, lost in OPTIONAL_MOTION.items():
-            if not hasattr(self.motion, method):
-                log.warning("NAOqi ALMotion.%s unavailable: %s", method, lost)
-        if hasattr(self.motion, "wakeUp"):
+        self._motion_lacks = {method for method in OPTIONAL_MOTION if not hasattr(self.motion, method)}
+        for method in sorted(self._motion_lacks):
+            log.warning("NAOqi ALMotion.%s unavailable: %s", method, OPTIONAL_MOTION[method])
+        if "wakeUp" not in self._motion_lacks:
             self.motion.wakeUp()
         if self.params.stand_init_at_start:
             self._optional("ALRobotPosture",
@@ -475,15 +476,15 @@ class NaoqiBackend(RobotBackend):
         return host not in ("127.0.0.1", "localhost", "::1")
 
     def move_is_active(self) -> bool:
-        if hasattr(self.motion, "moveIsActive"):
-            return bool(self.motion.moveIsActive())
-        return self._walk_commanded
+        if "moveIsActive" in self._motion_lacks:
+            return self._walk_commanded
+        return bool(self.motion.moveIsActive())
 
     def kill_move(self) -> None:
-        if hasattr(self.motion, "killMove"):
-            self.motion.killMove()
-        else:
+        if "killMove" in self._motion_lacks:
             self.stop_walking()
+        else:
+            self.motion.killMove()
 
     def rest(self) -> None:
         self.motion.rest()
