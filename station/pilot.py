@@ -524,10 +524,9 @@ class Pilot:
         nearest = self.keep_in.nearest(np.asarray(self.pose), self.ekf.x)
         if nearest is None or nearest[0] >= self.config.mission.wall_stop:
             return False
-        heading = self.pose[2]
-        towards = -(nearest[1] * math.cos(heading) + nearest[2] * math.sin(heading)) * walk[0] \
-            - (-nearest[1] * math.sin(heading) + nearest[2] * math.cos(heading)) * walk[1]
-        return towards > 1e-9
+        c, s = math.cos(self.pose[2]), math.sin(self.pose[2])
+        velocity = (walk[0] * c - walk[1] * s, walk[0] * s + walk[1] * c)  # in the map's frame
+        return -(nearest[1] * velocity[0] + nearest[2] * velocity[1]) > 1e-9  # towards the wall, against its normal
 
     def _control(self, step: Step, t: float) -> None:
         if self._t_active is None:
