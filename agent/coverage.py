@@ -104,7 +104,11 @@ class Coverage:
     def fraction(self, x: np.ndarray, margin: float = 0.0, within: Optional[np.ndarray] = None) -> float:
         """N_v / N_0 of the executed path (``margin``: see :meth:`seen`); of the bins ``within`` (N0,) bool
         if given (those the walls leave reachable, agent/keep_in.py)."""
-        seen = self.seen(x, margin)
-        if within is None:
-            return float(seen.mean())
-        return float(seen[within].mean()) if within.any() else 0.0
+        return seen_fraction(self.seen(x, margin), within)
+
+
+def seen_fraction(seen: np.ndarray, within: Optional[np.ndarray] = None) -> float:
+    """The share of bins seen (N0,) bool, of those ``within`` if given (0 when none is)."""
+    if within is None:
+        return float(seen.mean())
+    return float(seen[within].mean()) if within.any() else 0.0

@@ -97,6 +97,5 @@ def reachable_bins(keep_in: KeepIn, x: np.ndarray, params: CoverageParams, clear
     cy = x[1] + x[2] * np.sin(a) + rho * np.sin(a + beta)
     cams = np.stack(np.broadcast_arrays(cx, cy), axis=-1)  # (N0, beta, rho, 2)
     ok = np.hypot(cx - x[0], cy - x[1]) - x[2] >= clearance
-    if walls.any():
-        ok &= np.all(keep_in.distances(cams, walls) >= wall_clearance, axis=-1)
+    ok &= np.all(keep_in.distances(cams, walls) >= wall_clearance, axis=-1)  # no wall: all of none holds
     return ok.any(axis=(1, 2))

@@ -363,7 +363,7 @@ class Planner:
                 "clearance": clearance_cost(
                     dist, x[2], p.clearance, clearance_margin(poses, x, P, p.clearance_sigmas, p.clearance_margin_max)
                 ),
-                "wall": (np.zeros(len(poses)) if walls is None or not walls.any()
+                "wall": (np.zeros(len(poses)) if walls is None
                          else wall_cost(keep_in.distances(poses[..., :2], walls), p.wall_clearance)),
             }
             return sum(terms.values()), terms

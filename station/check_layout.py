@@ -161,7 +161,7 @@ def _cm(value: float) -> str:
 
 
 def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: Sequence[OrbitPoint], limit: float,
-         keep_in: KeepIn, wall_clearance: float, radius: float) -> None:
+         keep_in: KeepIn, walls: np.ndarray, wall_clearance: float) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,7 +178,6 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
             top.plot(x, y, "o", color=lm.color if lm.color in ("green", "yellow", "magenta", "cyan", "blue") else "0.5",
                      mec="k", ms=7)
     top.plot(*obj, "s", color="tab:red", ms=9, label="object")
-    walls = keep_in.walls(np.array([*obj, radius]))
     if walls.any():
         lo, hi = top.get_xlim(), top.get_ylim()
         gx, gy = np.meshgrid(np.linspace(*lo, 300), np.linspace(*hi, 300))
@@ -239,14 +238,14 @@ def run(args: argparse.Namespace) -> int:
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")
     for line in summarize(points, limit, args.step):
         print(line)
-    keep_in = KeepIn(landmarks)
-    planner = Planner.for_robot(config.planner, robot, resolution)
-    reachable = planner.reachable_bins(np.array([*args.object, args.radius]), keep_in)
-    print(f"walls: {int(keep_in.walls(np.array([*args.object, args.radius])).sum())} landmark planes; keeping "
+    keep_in, x = KeepIn(landmarks), np.array([*args.object, args.radius])
+    walls = keep_in.walls(x)
+    reachable = Planner.for_robot(config.planner, robot, resolution).reachable_bins(x, keep_in)
+    print(f"walls: {int(walls.sum())} landmark planes; keeping "
           f"{config.planner.wall_clearance:g} m off them and {config.planner.clearance:g} m off the object, the robot can see "
           f"{int(reachable.sum())} of the object's {reachable.size} coverage bins"
           + ("" if reachable.all() else ": it is too near a wall to be seen from all round (docs/landmarks.md)"))
-    draw(args.output, landmarks, args.object, points, limit, keep_in, config.planner.wall_clearance, args.radius)
+    draw(args.output, landmarks, args.object, points, limit, keep_in, walls, config.planner.wall_clearance)
     print(f"figure: {args.output}")
     nominal = [p for p in points if p.distance == min(radii, key=lambda r: abs(r - d_min))]
     if any(p.aimed_std > limit and p.best_std > limit for p in nominal):

@@ -93,7 +93,7 @@ import numpy as np
 from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import image_distance
 from agent.keep_in import KeepIn
-from agent.coverage import Coverage
+from agent.coverage import Coverage, seen_fraction
 from agent.ekf import ObjectEKF
 from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
@@ -540,11 +540,11 @@ class Pilot:
         x, P = self.ekf.x, self.ekf.P
         termination = self.config.planner.termination
         reachable = self.planner.reachable_bins(x, self.keep_in) if self.anchored else None
-        covered = self.coverage.fraction(x, termination.facing_margin, reachable)
+        seen = self.coverage.seen(x, termination.facing_margin)
+        covered = seen_fraction(seen, reachable)
         walled = reachable is not None and not reachable.all()
-        seen = int(self.coverage.seen(x, termination.facing_margin).sum())
-        if seen > self._covered[0]:
-            self._covered = (seen, t)
+        if seen.sum() > self._covered[0]:
+            self._covered = (int(seen.sum()), t)
         stalled = walled and t - self._covered[1] >= termination.stall
         reason = termination_reason(1.0 if stalled else covered, P, t - self._t_active, termination)
         if reason is not None and reason.startswith("complete"):  # the time limit is the mission's
