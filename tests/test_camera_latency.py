@@ -95,5 +95,7 @@ def test_a_bare_naoqi_on_another_clock_gets_its_frames_stamped_by_what_they_show
         backend.close()
     assert backend.clock_source == "camera"
     assert errors[0] > 0.09  # before: the camera bound, a latency late
-    assert backend.latency.tau == pytest.approx(0.10, abs=0.01)
+    # tau is the camera bound's lateness: the stand-in's 100-110 ms and the image's transfer to the bridge
+    # (150 kB through libqi: 5-10 ms here, more on a loaded machine)
+    assert 0.10 - STEP <= backend.latency.tau <= 0.11 + 0.02
     assert late and max(abs(e) for e in late) < 0.015
