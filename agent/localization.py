@@ -152,6 +152,7 @@ import cv2
 import numpy as np
 
 from agent.camera import CameraModel
+from agent.camera_tilt import CameraTilt
 from agent.marker_corners import refine_corners
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
@@ -181,6 +182,8 @@ class LocalizationParams:
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC (walking)
     roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
     pitch_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the camera pitch missing from T_BC
+    camera_tilt_sigma: Tuple[float, float] = field(metadata=bounds(1e-5, 0.2))  # rad, (roll, pitch) of the camera on its mount, before learning
+    camera_tilt_floor: float = field(metadata=bounds(1e-6, 0.2))  # rad, the learnt tilt's std never drops below this
     still_motion: float = field(metadata=bounds(0.0, 0.1))  # m and rad: odometry moving less than this per reading is standing (sensor jitter)
     still_settle: float = field(metadata=bounds(0.0, 10.0))  # s: ... once it has not moved for this long (a walk's odometry pauses between readings)
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
@@ -225,8 +228,11 @@ class PoseFix:
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
-    T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with
+    T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with (corrected by the camera tilt learnt then)
+    T_BC_reported: Optional[np.ndarray] = None  # the same as reported, before that correction (None: T_BC is)
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
+    tilt_information: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # I_d: the data's on (delta, epsilon), rad^-2
+    tilt_evidence: np.ndarray = field(default_factory=lambda: np.zeros(2))  # I_d t_d (agent/camera_tilt.py)
     intrinsics_gain: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))  # G = d(x, y, theta)/d(s_x, s_y, d_u, d_v)
 
 
@@ -378,20 +384,20 @@ class PlanarModel:
             raise NoFix("degenerate point set (collinear with the camera or repeated): the planar pose is undetermined")
         return _pose_of(v), float(math.hypot(v[0], v[1]))
 
-    def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, pixel_sigma: float, roll_sigma: float,
-               pitch_sigma: float, iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-        """Gauss-Newton on (x, y, theta, delta, epsilon): (p, rms, per-point error N, J^T J 5 x 5). Raises NoFix."""
+    def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, prior: np.ndarray,
+               iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """Gauss-Newton on (x, y, theta, delta, epsilon) with the tilt prior's information ``prior``
+        (5 x 5, pixel units, ``tilt_information``): (p, rms, per-point error N, J^T J + prior). Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
-        prior = _tilt_information(pixel_sigma, roll_sigma, pitch_sigma)
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
                 raise NoFix(f"{int(np.sum(z < MIN_DEPTH))} landmark point(s) behind the camera at the fit")
             r = (uv - target).ravel()
             Jr = J.reshape(-1, 5)
-            H = Jr.T @ Jr + np.diag(prior)
-            g = Jr.T @ r + prior * p
+            H = Jr.T @ Jr + prior
+            g = Jr.T @ r + prior @ p
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
                 raise NoFix("non-finite residuals in the planar fit")
             if np.linalg.cond(H) > 1e12:
@@ -406,7 +412,7 @@ class PlanarModel:
             raise NoFix("landmark point(s) behind the camera at the fit")
         err = np.linalg.norm(uv - target, axis=1)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + np.diag(prior)
+        H = Jr.T @ Jr + prior
         rms = float(np.sqrt(np.mean(err**2)))
         if not math.isfinite(rms):
             raise NoFix("non-finite reprojection error")
@@ -426,9 +432,12 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
     return seeds
 
 
-def _tilt_information(pixel_sigma: float, roll_sigma: float, pitch_sigma: float) -> np.ndarray:
-    """Diagonal of J^T J the roll and pitch priors add for (x, y, theta, delta, epsilon), in pixel units."""
-    return np.array([0.0, 0.0, 0.0, pixel_sigma / roll_sigma, pixel_sigma / pitch_sigma]) ** 2
+def tilt_information(pixel_sigma: float, covariance: np.ndarray) -> np.ndarray:
+    """The 5 x 5 information (pixel units) a prior N(0, ``covariance``) on (delta, epsilon) adds to
+    J^T J of (x, y, theta, delta, epsilon)."""
+    prior = np.zeros((5, 5))
+    prior[3:, 3:] = pixel_sigma**2 * np.linalg.inv(covariance)
+    return prior
 
 
 def _tilt(p: Sequence[float]) -> np.ndarray:
@@ -651,6 +660,10 @@ class RobotLocalizer:
         self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
         self._roll_sigma = params.roll_sigma
+        self.tilt = CameraTilt(params.camera_tilt_sigma, params.camera_tilt_floor)  # the camera on its mount
+        self._tilt_covariance = np.eye(2)  # the frame's prior on (delta, epsilon) (``_set_tilt_prior``)
+        self._tilt_prior = np.zeros((5, 5))  # its information, pixel units
+        self._reported_T_BC = np.eye(4)  # the frame's T_BC before the tilt correction
         self.landmarks_seen = 0  # map markers and landmark-coloured blobs in the last frame (for failure reasons)
         self._odom: Optional[Pose] = None
         self._stamp = -math.inf
@@ -731,6 +744,9 @@ class RobotLocalizer:
             self.no_fix_reason = f"jump of {math.hypot(fix.pose[0] - prior[0], fix.pose[1] - prior[1]):.2f} m from the prior rejected"
             return None
         self._fuse(fix, prior, odom)
+        if not self._moving:  # the sway is out of the fit: its tilt is the mount's
+            frame = np.diag([self.params.roll_sigma_still, self.params.pitch_sigma]) ** 2
+            self.tilt.update(self.tilt.correct(T_BC), fix.tilt_information, fix.tilt_evidence, frame)
         return fix
 
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
@@ -748,7 +764,21 @@ class RobotLocalizer:
             self.no_fix_reason = str(reason)
             return None
 
+    def _frame_tilt_covariance(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
+        """Prior covariance of (delta, epsilon) at the corrected T_BC: the torso's and the tilt estimate's."""
+        return np.diag([roll_sigma, self.params.pitch_sigma]) ** 2 + self.tilt.body_covariance(T_BC)
+
+    def _set_tilt_prior(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
+        """The frame's T_BC corrected by the learnt camera tilt; sets the fit's prior on (delta, epsilon):
+        the frame's torso roll and pitch and the tilt estimate's uncertainty (agent/camera_tilt.py)."""
+        self._reported_T_BC = T_BC
+        T_BC = self.tilt.correct(T_BC)
+        self._tilt_covariance = self._frame_tilt_covariance(T_BC, roll_sigma)
+        self._tilt_prior = tilt_information(self.params.pixel_sigma, self._tilt_covariance)
+        return T_BC
+
     def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose]) -> PoseFix:
+        T_BC = self._set_tilt_prior(T_BC, self._roll_sigma)
         model = PlanarModel(self.camera, T_BC)
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         prior_p = None
@@ -770,7 +800,7 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         try:
-            model = PlanarModel(self.camera, _check_transform(T_BC))
+            model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
             u = np.asarray(pixels, dtype=float).reshape(-1, 2)
             group = np.arange(len(X)) // 4 if groups is None else np.asarray(groups, dtype=int).reshape(-1)
@@ -815,15 +845,17 @@ class RobotLocalizer:
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too
             raise NoFix(f"reprojection RMS {rms:.2f} px above {self.params.max_reprojection_px} px")
-        if abs(p[4]) > self.params.max_roll_sigmas * self.params.pitch_sigma:
+        tilt_std = np.sqrt(np.diag(self._tilt_covariance))
+        if abs(p[4]) > self.params.max_roll_sigmas * tilt_std[1]:
             raise NoFix(f"the fit needs the camera pitched {math.degrees(p[4]):+.1f} deg off T_BC's (more than "
                         f"{self.params.max_roll_sigmas:g} sigma): the kinematics or the correspondences are wrong")
-        if abs(p[3]) > self.params.max_roll_sigmas * self.params.roll_sigma:  # the roll prior was wrong: widen it to |delta|
-            H = H.copy()
-            H[3, 3] += (self.params.pixel_sigma / p[3]) ** 2 - (self.params.pixel_sigma / self._roll_sigma) ** 2
         # per-axis residual variance: sum ||r_i||^2 = N rms^2 over 2N residuals, 3 degrees of freedom used
-        residual_var = len(points) * rms**2 / max(1, 2 * len(points) - 3)
-        covariance = max(self.params.pixel_sigma**2, residual_var) * np.linalg.inv(H)[:3, :3]
+        residual_var = max(self.params.pixel_sigma**2, len(points) * rms**2 / max(1, 2 * len(points) - 3))
+        information, evidence = _tilt_evidence(H - self._tilt_prior, self._tilt_prior, p, residual_var)
+        if abs(p[3]) > self.params.max_roll_sigmas * max(self.params.roll_sigma, tilt_std[0]):  # the roll prior was wrong: widen it to |delta|
+            widened = self._tilt_covariance + np.diag([p[3] ** 2 - self._tilt_covariance[0, 0], 0.0])
+            H = H - self._tilt_prior + tilt_information(self.params.pixel_sigma, widened)
+        covariance = residual_var * np.linalg.inv(H)[:3, :3]
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
@@ -837,12 +869,14 @@ class RobotLocalizer:
         gain = -np.linalg.solve(H, J.reshape(-1, 5).T @ model.intrinsics_jacobian(uv).reshape(-1, 4))[:3]
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
-                       roll_sigma=self._roll_sigma, intrinsics_gain=gain)
+                       T_BC_reported=self._reported_T_BC,
+                       roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
+                       intrinsics_gain=gain)
 
     # -- markers -------------------------------------------------------------------------------
 
     def _refine(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
-        return model.refine(seed, points.X, points.u, self.params.pixel_sigma, self._roll_sigma, self.params.pitch_sigma)
+        return model.refine(seed, points.X, points.u, self._tilt_prior)
 
     def _fit_markers(self, model: PlanarModel, markers: _Points, prior: Optional[np.ndarray]):
         """(inlier points, p, rms, H): the joint fit of all markers, or the largest consensus (module docstring)."""
@@ -1088,6 +1122,7 @@ class RobotLocalizer:
 
     def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
         """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
+        T_BC = self.tilt.correct(T_BC)
         model = PlanarModel(self.camera, T_BC)
         p = np.array([*pose, 0.0, 0.0])
         X, _, _ = self._visible_points(model, p)
@@ -1095,14 +1130,14 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + np.diag(_tilt_information(self.params.pixel_sigma, self.params.roll_sigma, self.params.pitch_sigma))
+        H = Jr.T @ Jr + tilt_information(self.params.pixel_sigma, self._frame_tilt_covariance(T_BC, self.params.roll_sigma))
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
 
     def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
         """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
-        X, _, landmarks = self._visible_points(PlanarModel(self.camera, T_BC), np.array([*pose, 0.0, 0.0]))
+        X, _, landmarks = self._visible_points(PlanarModel(self.camera, self.tilt.correct(T_BC)), np.array([*pose, 0.0, 0.0]))
         return len(X), landmarks
 
     def _visible_points(self, model: PlanarModel, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray, int]:
@@ -1214,6 +1249,18 @@ def head_directions(head_limits, yaw_step: float = 0.25, pitches: int = 2) -> Li
         lo, hi = head_limits.pitch_range(float(yaw))
         out += [(float(yaw), float(pitch)) for pitch in np.linspace(lo, hi, pitches + 2)[1:-1]]
     return out
+
+
+def _tilt_evidence(data: np.ndarray, prior: np.ndarray, p: np.ndarray, variance: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(I_d, I_d t_d): the information of a fit's data alone on (delta, epsilon), the pose eliminated
+    (Schur complement of its normal matrix ``data``, pixel units, residual ``variance``), and the
+    vector the fit's optimum p under the zero-mean ``prior`` gives: (I_d,px + prior_tt) t = I_d,px t_d."""
+    try:
+        marginal = data[3:, 3:] - data[3:, :3] @ np.linalg.solve(data[:3, :3], data[:3, 3:])
+    except np.linalg.LinAlgError:
+        return np.zeros((2, 2)), np.zeros(2)
+    marginal = 0.5 * (marginal + marginal.T)
+    return marginal / variance, (marginal + prior[3:, 3:]) @ p[3:5] / variance
 
 
 def _distinct(poses: np.ndarray, scores: np.ndarray, distance: float, limit: int = 8) -> List[np.ndarray]:

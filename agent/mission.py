@@ -88,6 +88,7 @@ class MissionParams:
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this
+    relocalize_shift: float = field(metadata=bounds(0.0, 100.0))  # m or rad: a fix moving the pose further rebuilds the object filter
     stop_timeout: float = field(metadata=bounds(0.0, 60.0))
 
     @property

@@ -55,6 +55,11 @@ counted from the head's arrival, and stands again later while no estimate is app
 (agent/standstill.py); not where no direction is predicted to show one (a sparse layout rarely
 shows two markers at once).
 
+Each fix keeps its camera transform as reported; a solve corrects it by the localizer's latest
+camera tilt on its mount (agent/camera_tilt.py), learnt from the same standing fixes: corrected by
+the estimate of its own time, a fix stored before the tilt had settled tilted the others'
+solution (measured: matrix seed 23, the camera rolled 0.5 deg, focal scales 1 % off).
+
 The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
 on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
 """
@@ -67,6 +72,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
+from agent.camera_tilt import CameraTilt
 from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
 from nao_core.config import bounds
 from nao_core.landmark_map import LandmarkMap
@@ -107,7 +113,7 @@ class SelfCalibrationParams:
 class _Fix:
     X: np.ndarray  # N x 3 world points
     u: np.ndarray  # N x 2 pixels, distortion removed
-    T_BC: np.ndarray
+    T_BC: np.ndarray  # as reported: corrected by the camera tilt learnt by the time of the solve
     p: np.ndarray  # (x, y, theta, delta) of the fix
     roll_sigma: float
 
@@ -139,9 +145,10 @@ def corrected(camera: CameraModel, c: np.ndarray) -> CameraModel:
 class SelfCalibration:
     """Stores the landmark fixes of a mission and estimates the camera's intrinsics error from them."""
 
-    def __init__(self, params: SelfCalibrationParams, camera: CameraModel):
+    def __init__(self, params: SelfCalibrationParams, camera: CameraModel, tilt: Optional[CameraTilt] = None):
         self.params = params
         self.configured = camera
+        self.tilt = tilt  # the localizer's camera tilt (agent/camera_tilt.py): every solve corrects the fixes by its latest
         self.estimate: Optional[Calibration] = None  # the latest, applied or not
         self.applied: Optional[Calibration] = None
         self.fixes: List[_Fix] = []
@@ -202,7 +209,8 @@ class SelfCalibration:
                 or not self.head_settled or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers
-        self.fixes = (self.fixes + [_Fix(X, u, fix.T_BC, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
+        reported = fix.T_BC if fix.T_BC_reported is None else fix.T_BC_reported
+        self.fixes = (self.fixes + [_Fix(X, u, reported, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
         self._last_stamp = stamp
         self.stored += 1
         self._new += 1
@@ -217,7 +225,7 @@ class SelfCalibration:
 
     def solve(self) -> Optional[Calibration]:
         """Bundle adjustment of c and the stored fixes' poses (module docstring); None when it fails."""
-        fixes = list(self.fixes)
+        fixes = self.fixes if self.tilt is None else [replace(f, T_BC=self.tilt.correct(f.T_BC)) for f in self.fixes]
         for _ in range(3):  # drop wrong associations, then refit
             result = self._solve(fixes)
             if result is None:

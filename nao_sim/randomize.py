@@ -17,8 +17,10 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
 * the NAOqi itself: with probability ``bare_naoqi`` the stand-in is bare (``StandIn(bare=True)``: no
   posture or autonomous-life service, no ALMemory subscriber, timestamps or battery key, images in
   RGB), drawn after the above so that their draws for a seed do not depend on it;
-* the sensor, drawn last: pixel noise, optical blur and the room's brightness (exposure) in
-  ``pixel_sigma``, ``blur_sigma`` and ``exposure``.
+* the sensor: pixel noise, optical blur and the room's brightness (exposure) in
+  ``pixel_sigma``, ``blur_sigma`` and ``exposure``;
+* the camera on its mount, drawn last: a roll and a pitch uniform within +-``mount_error`` that
+  the reported camera transform omits (agent/camera_tilt.py learns them).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -64,6 +66,7 @@ class Randomizer:
     pixel_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 50.0))  # grey levels
     blur_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # px at VGA
     exposure: Tuple[float, float] = field(metadata=bounds(0.1, 3.0))  # mean brightness factor
+    mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
@@ -96,7 +99,8 @@ class WorldSpec:
                 "speed_scale_sigma": round(dyn.speed_scale_sigma[0], 3), "sway_roll": round(dyn.sway.roll, 3),
                 "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency],
                 "bare_naoqi": self.bare_naoqi, "pixel_sigma": round(noise.pixel_sigma, 2),
-                "blur_sigma": round(noise.blur_sigma, 2), "exposure": round(noise.exposure, 2)}
+                "blur_sigma": round(noise.blur_sigma, 2), "exposure": round(noise.exposure, 2),
+                "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error]}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -146,6 +150,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     bare = bool(rng.uniform() < r.bare_naoqi)  # after the above: their draws do not depend on it
     sensor = dataclasses.replace(noise, pixel_sigma=float(rng.uniform(*r.pixel_sigma)),  # last
                                  blur_sigma=float(rng.uniform(*r.blur_sigma)), exposure=float(rng.uniform(*r.exposure)))
+    sensor = dataclasses.replace(sensor, mount_error=tuple(float(m) for m in rng.uniform(-1.0, 1.0, 2) * r.mount_error))
     config = dataclasses.replace(config, noise=sensor)
     return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
                      true_robot, (x, y, heading), bare)

@@ -192,6 +192,7 @@ class Noise:
     clock_offset: float = field(metadata=bounds(-1e9, 1e9))  # s, stand-in robot clock minus bridge clock
     blur_sigma: float = field(metadata=bounds(0.0, 10.0))  # px at VGA, Gaussian optical blur (0: none)
     exposure: float = field(metadata=bounds(0.1, 3.0))  # mean brightness factor of every frame
+    mount_error: Tuple[float, float] = field(metadata=bounds(-0.1, 0.1))  # rad, (roll, pitch) of the camera on its mount, unreported
 
     def __post_init__(self) -> None:
         if self.latency[0] > self.latency[1]:

@@ -125,6 +125,8 @@ class SimWorld:
         )
         dyn = self.config.dynamics
         self._dyn = dyn
+        roll, pitch = self.config.noise.mount_error
+        self._mount = rot_x(roll) @ rot_y(pitch)  # the camera on its mount, in NAO camera axes: never reported
         self._rng = np.random.default_rng(seed)
         self.speed_scale = 1.0 + self._rng.normal(0.0, 1.0, 3) * np.asarray(dyn.speed_scale_sigma)
         self.start_pose = self._start_pose()
@@ -390,7 +392,7 @@ class SimWorld:
             state = self._state_at(at)
             stamp = self._time if at is None else self._grid(at)
             T_BC = nao_to_optical(self._camera_nao(state, self._dyn.sway.reported_fraction))
-            T_WC = planar_transform(*state.pose) @ nao_to_optical(self._camera_nao(state, 1.0))
+            T_WC = planar_transform(*state.pose) @ nao_to_optical(self._camera_nao(state, 1.0) @ self._mount)
             self._frames += 1
             index = self._frames
             self._last_render = (stamp, T_WC)

@@ -29,10 +29,15 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
                    against that fix's points (agent/keyframe_pose.py)
 
-Re-anchoring: before the first fix the filter runs in the odometry frame O and its measurements
-are kept. At the first fix, with the correction T_WO = pose_W (+) odom^-1, each kept measurement
-is moved into W (cam_xy <- T_WO cam_xy, psi += theta_WO; phi, relative to psi, is unchanged) and the filter is rebuilt from
-them in order: the estimate of the odometry frame becomes the same estimate in W.
+Re-anchoring: every filter measurement is also kept with its camera in the odometry frame O (the
+last ``VIEWS_KEPT``); before the first fix the filter runs in O. At the first fix, with the
+correction T_WO = pose_W (+) odom^-1, each kept measurement is moved into W (cam_xy <- T_WO cam_xy,
+psi += theta_WO; phi, relative to psi, is unchanged) and the filter is rebuilt from them in order:
+the estimate of the odometry frame becomes the same estimate in W. The same happens when a fix
+moves the pose by more than ``mission.relocalize_shift`` (m, or rad of heading): a wrong fix (a
+cold colour hypothesis on the far side of a wall) corrected; the estimate built on it is rebuilt
+from the same views under the new correction, the coverage likewise (measured: matrix seed 23
+with the camera tilted on its mount, lost without it).
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
@@ -82,10 +87,10 @@ out on the next tick).
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, Iterator, List, Optional, Tuple, Type
+from typing import Callable, Deque, Dict, Iterator, List, Optional, Tuple, Type
 
 import cv2
 import numpy as np
@@ -123,6 +128,7 @@ from station.outputs import (
 )
 
 Cam = Tuple[float, float, float]
+VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
 
 
 @dataclass(frozen=True)
@@ -169,6 +175,11 @@ def _surface_point(odom: Pose, T_BC: np.ndarray, distance: float, bearing: float
     return float(T_OC[0, 3] + distance * math.cos(azimuth)), float(T_OC[1, 3] + distance * math.sin(azimuth))
 
 
+def _moved(a: Pose, b: Pose) -> float:
+    """How far pose ``a`` is from ``b``: the larger of the distance (m) and the heading change (rad)."""
+    return max(math.hypot(a[0] - b[0], a[1] - b[1]), abs(wrap_angle(a[2] - b[2])))
+
+
 def _flat(T: np.ndarray) -> Tuple[float, ...]:
     return tuple(float(v) for v in T.ravel())
 
@@ -184,7 +195,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
-        self.calibration = SelfCalibration(config.self_calibration, self.camera)
+        self.calibration = SelfCalibration(config.self_calibration, self.camera, self.localizer.tilt)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
                                                 self.calibration.can_store_fixes_from(config.landmarks))
@@ -192,7 +203,8 @@ class Pilot:
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.dropped: Counter = Counter()  # frames dropped, by the step that raised
-        self._unanchored: List[Tuple[float, Cam, float, Optional[float]]] = []  # (stamp, cam, phi, delta) in O
+        self._views: Deque[Tuple[float, Cam, float, Optional[float]]] = deque(maxlen=VIEWS_KEPT)  # (stamp, cam, phi, delta) in O
+        self.relocalized = 0  # filters rebuilt after a fix moved the pose by more than relocalize_shift
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
         self._covered: Tuple[int, float] = (0, 0.0)  # the most bins the termination saw seen, and when
@@ -293,13 +305,21 @@ class Pilot:
                 raise ValueError(f"JPEG does not decode to the camera's {self.camera.width} x {self.camera.height} image")
             T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
         with guarded("localization"):
+            before = self.localizer.pose_at(meta.odom)
             fix = self.localizer.on_frame(image, T_BC, meta.odom, meta.stamp)
+            T_BC = self.localizer.tilt.correct(T_BC)  # the camera on its mount, as learnt (agent/camera_tilt.py)
             world = self.localizer.pose_at(meta.odom)  # at capture time
             if world is not None and not self.anchored:
                 self._reanchor(world, meta.odom)
+            elif world is not None and before is not None and _moved(world, before) > self.config.mission.relocalize_shift:
+                self.relocalized += 1
+                self._reanchor(world, meta.odom)
+                step.outputs.append(self._ekf_record(t))
             self.pose = world if world is not None else tuple(float(v) for v in meta.odom)
             T_WC = camera_in_world(self.pose, T_BC)
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
+            T_OC = camera_in_world(tuple(float(v) for v in meta.odom), T_BC)
+            cam_odom = (float(T_OC[0, 3]), float(T_OC[1, 3]), optical_axis_heading(T_OC))
         with guarded("calibration"):
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
             self.standstill.on_head(t, meta.head_yaw, meta.head_pitch)
@@ -333,7 +353,7 @@ class Pilot:
         decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
-                self._filter(step, t, meta.seq, meta.stamp, cam, measurement.phi, measurement.delta, self._camera_covariance(cam))
+                self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam))
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
@@ -355,10 +375,9 @@ class Pilot:
         J = np.array([[1.0, 0.0, self.pose[1] - cam[1]], [0.0, 1.0, cam[0] - self.pose[0]], [0.0, 0.0, 1.0]])
         return J @ P @ J.T
 
-    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, phi: float, delta: Optional[float],
+    def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
                 cam_cov: Optional[np.ndarray]) -> None:
-        if not self.anchored:
-            self._unanchored.append((stamp, cam, phi, delta))
+        self._views.append((stamp, cam_odom, phi, delta))
         result = self._observe(stamp, cam, phi, delta, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
@@ -384,16 +403,20 @@ class Pilot:
                                               applied.frames, applied.rms))
 
     def _reanchor(self, world: Pose, odom: Pose) -> None:
-        """Move the filter from the odometry frame into W (module docstring)."""
+        """Rebuild the filter in W from the views kept in the odometry frame (module docstring)."""
         x0, y0, theta = compose(world, relative(odom, (0.0, 0.0, 0.0)))  # T_WO
         c, s = math.cos(theta), math.sin(theta)
-        kept, self._unanchored = self._unanchored, []
+        relocated = self.anchored
         self.anchored = True
         self.ekf = ObjectEKF(self.config.ekf)
         self._last_capture = None
-        for stamp, (cx, cy, psi), phi, delta in kept:
+        if relocated:
+            self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
+        for stamp, (cx, cy, psi), phi, delta in self._views:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
             self._observe(stamp, cam, phi, delta)  # phi is measured from psi: a rigid move leaves it
+            if relocated:
+                self.coverage.add(np.asarray(cam))
 
     def _ekf_record(self, t: float) -> EkfRecord:
         x, P = self.ekf.x, self.ekf.P

@@ -322,16 +322,18 @@ def test_jumps_that_scatter_never_overturn_the_prior(params, perception, robot, 
 
 
 def test_a_fit_that_needs_a_roll_beyond_its_prior_widens_its_covariance(params, perception, robot, room):
-    """T_BC missing a torso roll of 5 walking sigmas (beyond max_roll_sigmas): the fit's covariance
-    is computed with the roll prior widened to that roll, so it is less confident than the same view
-    with half a sigma missing (the tight prior would have hidden the pose-roll trade)."""
+    """T_BC missing a torso roll of 5 sigmas of its prior (the walking torso's and the camera tilt's
+    unlearnt, beyond max_roll_sigmas): the fit's covariance is computed with the roll prior widened
+    to that roll, so it is less confident than the same view with half a sigma missing (the tight
+    prior would have hidden the pose-roll trade)."""
     world = SimWorld("can", robot, "vga", seed=4)
     camera = camera_of(robot, "vga")
     pose = (-0.5, 0.0, 0.0)
     world.teleport(pose, robot.look_at(pose, (1.5, 0.0, 0.085)))
     frame = world.render()
     localizer = RobotLocalizer(params, room, camera, perception)
-    fixes = [localizer.measure(frame.image, rot_x(sigmas * params.roll_sigma) @ frame.T_BC, None, params.roll_sigma)
+    sigma = math.hypot(params.roll_sigma, math.sqrt(localizer.tilt.body_covariance(frame.T_BC)[0, 0]))
+    fixes = [localizer.measure(frame.image, rot_x(sigmas * sigma) @ frame.T_BC, None, params.roll_sigma)
              for sigmas in (0.5, params.max_roll_sigmas + 2.0)]  # the reported camera misses this roll
     assert fixes[0] is not None
     assert fixes[1] is None or np.trace(fixes[1].covariance[:2, :2]) > np.trace(fixes[0].covariance[:2, :2])
@@ -666,15 +668,17 @@ def test_alternating_gaze_keeps_the_pose_in_a_wall_layout(params, perception, ro
 
 
 def test_roll_is_held_tight_while_standing_and_freed_while_walking(params, perception, robot, room):
-    """Standing (odometry unchanged) the torso-roll unknown is held by ``roll_sigma_still``: the far
-    side of the ring alone (all markers at one height) then fixes the pose as if T_BC were exact;
-    once odometry moves, the looser walking prior applies (the fix's covariance grows)."""
+    """Standing (odometry unchanged), once the camera's tilt on its mount is learnt (here: known), the
+    torso-roll unknown is held by ``roll_sigma_still``: the far side of the ring alone (all markers
+    at one height) then fixes the pose as if T_BC were exact; once odometry moves, the looser
+    walking prior applies (the fix's covariance grows)."""
     world = SimWorld("can", robot, "qvga", seed=1)
     camera = camera_of(robot, "qvga")
     truth = (0.68, -1.44, 2.03)  # on the ring, looking across it: markers 2.5-3 m away
     world.teleport(truth, robot.look_at(truth, (*world.scenario.position, 0.1)))
     frame = world.render()
-    localizer = RobotLocalizer(params, room, camera, perception)
+    tilt_known = dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2)
+    localizer = RobotLocalizer(tilt_known, room, camera, perception)
     localizer.on_odometry((0.0, 0.0, 0.0), 0.0)
     still = localizer.on_frame(frame.image, frame.T_BC, (0.0, 0.0, 0.0), 1.0)
     assert still is not None and abs(still.roll) <= 3 * params.roll_sigma_still
@@ -760,18 +764,19 @@ def test_a_fix_s_intrinsics_gain_is_the_derivative_of_its_pose(params, robot):
 def test_the_total_covariance_holds_the_intrinsics_error_every_fix_shares(params, robot):
     """Monte Carlo: a standing robot fuses 15 fixes of two far markers, seen through a camera whose
     focal lengths are off by N(0, 0.5 %) and principal point by N(0, 1 px) (what a calibration leaves),
-    0.15 px of corner noise. The fusion's covariance treats the fixes as independent and shrinks under
+    0.15 px of corner noise, its tilt on the mount known. The fusion's covariance treats the fixes as independent and shrinks under
     their shared error (NEES far above 3); ``total_covariance``, with that intrinsics covariance, is
     consistent: NEES averages 3 (chi-square, 3 dof; 200 runs: 99 % of means within 2.4-3.6)."""
     camera, T_BC, X = _two_far_markers(robot)
     sigma = np.array([0.005, 0.005, 1.0, 1.0])
+    tilt_known = dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2)
     image = np.zeros((camera.height, camera.width, 3), np.uint8)
     rng = np.random.default_rng(5)
     nees_fused, nees_total = [], []
     for _ in range(200):
         truth = rng.normal(0.0, 0.05, 3)
         seen_by = PlanarModel(corrected(camera, rng.normal(0.0, sigma)), T_BC)
-        localizer = RobotLocalizer(params, LandmarkMap(()), camera)
+        localizer = RobotLocalizer(tilt_known, LandmarkMap(()), camera)
         localizer.set_intrinsics_covariance(np.diag(sigma**2))
         pixels = lambda: seen_by.project(truth, X)[0] + rng.normal(0.0, params.pixel_sigma, (len(X), 2))  # noqa: E731
         localizer.measure = lambda image, T_BC, prior=None, roll_sigma=None: localizer.fit(X, pixels(), T_BC, prior, roll_sigma=roll_sigma)

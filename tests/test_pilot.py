@@ -288,6 +288,57 @@ def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypa
     assert d2 <= -2.0 * math.log(0.003), (d2, pilot.ekf.x, centre)  # chi-square, 2 dof, 99.7 % (3 sigma)
 
 
+@pytest.mark.parametrize("rebuild", [True, False])
+def test_a_wrong_fix_corrected_rebuilds_the_object_estimate_onto_the_truth(monkeypatch, rebuild):
+    """The first fixes are wrong by a rigid 1 m and 0.3 rad (a cold colour hypothesis on the far side
+    of a wall, matrix seed 23), and the object estimate is built on them; then the real fixes come,
+    the localizer's jump gate gives way to them, and the pose moves by more than
+    ``relocalize_shift``. The pilot rebuilds the estimate from its views in the odometry frame: it
+    lands on the simulator's object within the filter's 3 sigma (plus the odometry's share, as at
+    the first fix). Without the rebuild (the shift threshold out of reach) the estimate stays a
+    metre off and the later views are gated against it."""
+    now = [0.0]
+    world = SimWorld("can", MODEL, "qvga", seed=1, clock=lambda: now[0])
+    world.teleport(world.start_pose, head=(0.0, CONFIG.mission.init_pitch))
+    shift = CONFIG.mission.relocalize_shift if rebuild else 100.0
+    config = dataclasses.replace(CONFIG, mission=dataclasses.replace(CONFIG.mission, relocalize_shift=shift))
+    pilot = Pilot(config, INFO)
+    real, wrong = pilot.localizer.measure, [10]
+
+    def wrong_first(*args):
+        fix = real(*args)
+        if fix is not None and wrong[0]:
+            wrong[0] -= 1
+            return dataclasses.replace(fix, pose=compose((1.0, 0.0, 0.3), fix.pose))
+        return fix
+
+    monkeypatch.setattr(pilot.localizer, "measure", wrong_first)
+    world.walk(0.0, 0.0, 0.2)
+    seen = []
+    for k in range(60):
+        now[0] += 0.15
+        shot = world.render()
+        seen.append((shot.odom, world.true_pose()))
+        pilot.handle(FrameReceived(now[0], frame(k + 1, jpeg(shot.image), shot.T_BC.ravel(), shot.odom, shot.stamp)))
+    assert wrong[0] == 0 and pilot.ekf.initialized
+    pose_error = math.hypot(pilot.pose[0] - seen[-1][1][0], pilot.pose[1] - seen[-1][1][1])
+    assert pose_error < 0.05  # the localizer itself took the real fixes
+    centre = np.asarray(world.truth()["object"]["centre"][:2])
+    d = pilot.ekf.x[:2] - centre
+    if not rebuild:
+        assert pilot.relocalized == 0 and math.hypot(*d) > 0.3
+        return
+    assert pilot.relocalized >= 1
+    T_WO = compose(pilot.pose, relative(seen[-1][0], (0.0, 0.0, 0.0)))
+    mapped = [(compose(T_WO, odom), true) for odom, true in seen]
+    position_error = max(math.hypot(m[0] - t[0], m[1] - t[1]) for m, t in mapped)
+    heading_error = max(abs(wrap_angle(m[2] - t[2])) for m, t in mapped)
+    reach = max(math.hypot(*(centre - t[:2])) for _, t in mapped)
+    slack = position_error + reach * heading_error
+    d2 = float(d @ np.linalg.solve(pilot.ekf.P[:2, :2] + slack**2 * np.eye(2), d))
+    assert d2 <= -2.0 * math.log(0.003), (d2, pilot.ekf.x, centre)
+
+
 def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     """The estimate 3 m away asks for a near-horizontal head; the last silhouette was cut by the
     bottom border, so the head pitches down by the bottom row's angle from its capture pitch."""

@@ -29,7 +29,11 @@ Measured against the simulator's truth:
   whether the robot is at rest when the station has exited;
 * the focal error the mission ended with: max over both axes of |s - s_true|, s the focal scale
   error of the last self-calibration estimate applied (/agent/self_calibration, 0 when none was),
-  s_true the world's (its true over the configured focal length, less one).
+  s_true the world's (its true over the configured focal length, less one);
+* the camera tilt error: |b - b_true| of the roll and the pitch of the camera on its mount
+  (agent/camera_tilt.py), b the rotation between the reported (/nao/camera/meta) and the corrected
+  (/agent/pose) T_BC of the last logged pose, b_true the world's ``mount_error`` (a principal
+  point error reads as pitch: 1 px is 0.1 deg).
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
                            [--doc docs/benchmarks.md] [--rebuild]
@@ -56,6 +60,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 import yaml
 
@@ -66,7 +71,7 @@ from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
 from station.config import load_station_config
 from station.mcap_log import read_log
-from station.topics import DECISION, KEYFRAME, POSE, SELF_CALIBRATION
+from station.topics import DECISION, FRAME_META, KEYFRAME, POSE, SELF_CALIBRATION
 from tools.bench import BEGIN, END, section
 
 BLURRED = 0.7  # px at VGA: worlds blurred at least this much are counted apart in the table
@@ -97,6 +102,7 @@ class MissionResult:
     self_calibrated: bool = False  # a self-calibration estimate was applied
     filter_centre_error: Optional[float] = None  # m, the filter's centre (module docstring)
     min_wall_distance: Optional[float] = None  # m, the true robot origin's least distance to a wall of the room
+    tilt_error: Optional[Tuple[float, float]] = None  # rad, the learnt camera tilt's roll and pitch error (module docstring)
 
 
 class _ClearanceMonitor(threading.Thread):
@@ -196,6 +202,20 @@ def focal_error(applied: List[dict], spec: WorldSpec, resolution: str) -> Tuple[
     return float(np.abs(s - s_true).max()), bool(applied)
 
 
+def tilt_error(log: Path, poses: List[dict], spec: WorldSpec) -> Optional[Tuple[float, float]]:
+    """(|roll error|, |pitch error|) of the camera tilt the mission ended with (module docstring)."""
+    if not poses:
+        return None
+    last = poses[-1]
+    reported = next((m.json()["T_BC"] for m in read_log(log, topics={FRAME_META}) if m.json().get("seq") == last["seq"]), None)
+    if reported is None:
+        return None
+    R = np.asarray(reported, dtype=float).reshape(4, 4)[:3, :3].T @ np.asarray(last["T_BC"], dtype=float).reshape(4, 4)[:3, :3]
+    omega = cv2.Rodrigues(R)[0].ravel()  # optical axes: roll about z, pitch down about -x
+    roll, pitch = spec.config.noise.mount_error
+    return abs(float(omega[2]) - roll), abs(float(-omega[0]) - pitch)
+
+
 def _final_decision_time(log: Path) -> Optional[float]:
     """Log time (station clock, s since the epoch) of the first decision of the final run of stops."""
     decided = None
@@ -252,20 +272,21 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     if (run / "voxels.npz").exists():
         iou = model_iou(run / "voxels.npz", spec)
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
-    pose_error, heading_error, keyframe_shift, focal = None, None, None, (None, False)
+    pose_error, heading_error, keyframe_shift, focal, tilt = None, None, None, (None, False), None
     if (run / "run.mcap").exists():
         messages = list(read_log(run / "run.mcap", topics={POSE, SELF_CALIBRATION}))
         poses = [m.json() for m in messages if m.topic == POSE]
         pose_error, heading_error = pose_errors(poses, monitor.trace)
         keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
         focal = focal_error([m.json() for m in messages if m.topic == SELF_CALIBRATION], spec, resolution)
+        tilt = tilt_error(run / "run.mcap", poses, spec)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
     return MissionResult(spec.seed, spec.summary(), result.get("outcome", "no result"), result.get("reason", ""), proc.returncode,
                          centre_error, radius_error, iou, clearance, pose_error, heading_error, keyframe_shift, result.get("duration"), stop_delay,
                          stopped, str(out), focal_error=focal[0], self_calibrated=focal[1], filter_centre_error=filter_centre_error,
-                         min_wall_distance=monitor.wall)
+                         min_wall_distance=monitor.wall, tilt_error=tilt)
 
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
@@ -300,8 +321,8 @@ def _fmt(value: Optional[float], scale: float = 1.0, digits: int = 1) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
 
 
-def _pair(values: Optional[Tuple[float, float]], scale: float) -> str:
-    return "-" if values is None else f"{_fmt(values[0], scale)} / {_fmt(values[1], scale)}"
+def _pair(values: Optional[Tuple[float, float]], scale: float, digits: int = 1) -> str:
+    return "-" if values is None else f"{_fmt(values[0], scale, digits)} / {_fmt(values[1], scale, digits)}"
 
 
 def table(results: List[MissionResult], resolution: str, machine: str = "") -> str:
@@ -317,12 +338,14 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         dur = [r.duration for r in ok if r.duration is not None]
         focal = [r.focal_error for r in ok if r.focal_error is not None]
         walls = [r.min_wall_distance for r in rows if r.min_wall_distance is not None]
+        tilt = [max(r.tilt_error) for r in ok if r.tilt_error is not None]
         med = lambda v, s=1.0, d=1: _fmt(float(np.median(v)) if v else None, s, d)  # noqa: E731
         return (f"| {label} | {len(ok)}/{len(rows)} | {sum(r.outcome == 'error' for r in rows)} | {med(centre, 1000)} | "
                 f"{_fmt(max(centre) if centre else None, 1000)} | {med(filter_centre, 1000)} / "
                 f"{_fmt(max(filter_centre) if filter_centre else None, 1000)} | {med(radius, 1000)} | {med(iou, 1, 3)} | "
                 f"{_fmt(min(r.min_clearance for r in rows), 1, 3)} | {_fmt(min(walls) if walls else None, 1, 3)} | {med(dur, 1, 0)} | {med(focal, 100, 2)} / "
-                f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} |")
+                f"{_fmt(max(focal) if focal else None, 100, 2)} | {sum(r.self_calibrated for r in ok)} | "
+                f"{med(tilt, 180 / math.pi, 2)} / {_fmt(max(tilt) if tilt else None, 180 / math.pi, 2)} |")
 
     objects = sorted({r.world["object"] for r in results})
     bare = [r for r in results if r.world.get("bare_naoqi")]
@@ -333,28 +356,32 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         f"against the stand-in (YUV422, latency, drops, clock offset; {100 * drawn.bare_naoqi:g} % of them a bare NAOqi: "
         "docs/bridge.md), in a random landmark layout, with a random object, start pose "
         f"({drawn.start_distance[0]:g}-{drawn.start_distance[1]:g} m, object up to {math.degrees(drawn.start_bearing):.0f} deg off the heading), "
-        f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, and a sensor "
+        f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, the camera "
+        f"rolled up to {math.degrees(drawn.mount_error[0]):.1f} deg and pitched up to {math.degrees(drawn.mount_error[1]):.1f} deg on its mount "
+        "(unreported), and a sensor "
         f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
         f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
         "origin to the object's outline), the wall distance the least from it to the room's walls; focal error: the camera the mission ended with against the world's, "
-        f"self-calibrated or configured (tools/matrix.py).{(' ' + machine) if machine else ''}",
+        "self-calibrated or configured; tilt error: the larger of the learnt camera roll's and pitch's on its mount against the world's "
+        f"(tools/matrix.py).{(' ' + machine) if machine else ''}",
         "",
-        "| object | completed | error | centre median (mm) | centre max (mm) | filter centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | min wall distance (m) | duration median (s) | focal error median / max (%) | self-calibrated |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| object | completed | error | centre median (mm) | centre max (mm) | filter centre median / max (mm) | abs radius error median (mm) | IoU median | min clearance (m) | min wall distance (m) | duration median (s) | focal error median / max (%) | self-calibrated | tilt error median / max (deg) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[stats([r for r in results if r.world["object"] == o], o) for o in objects],
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
         f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
         "",
-        "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | wall distance (m) | duration (s) | stop after decision (ms) | focal error (%) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | wall distance (m) | duration (s) | stop after decision (ms) | focal error (%) | tilt error roll / pitch (deg) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *[f"| {r.seed} | {r.world['layout']} | {r.world['object']} | {r.outcome} | {_fmt(r.centre_error, 1000)} | "
           f"{_fmt(r.filter_centre_error, 1000)} | {_fmt(r.radius_error, 1000)} | {_fmt(r.iou, 1, 3)} | {_pair(r.pose_error, 1000)} | {_pair(r.keyframe_shift, 1)} | "
           f"{_fmt(r.heading_error[0] if r.heading_error else None, 1000)} | {_fmt(r.min_clearance, 1, 3)} | "
           f"{_fmt(r.min_wall_distance, 1, 3)} | {_fmt(r.duration, 1, 0)} | {_fmt(r.stop_delay, 1000, 0)} | "
-          f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} |" for r in results],
+          f"{_fmt(r.focal_error, 100, 2)}{'' if r.self_calibrated else ' (configured)'} | {_pair(r.tilt_error, 180 / math.pi, 2)} |"
+          for r in results],
     ]
     if len(done) < len(results):
         lines += ["", "Reasons of the missions that did not complete:", ""]
