@@ -35,9 +35,13 @@ to T_BC: 0.1 deg of it (a head pitch sensor's resolution, the sway's bob) shifts
 pixel, which a fit of (x, y, theta) alone turns into a range error (measured on rendered frames of
 the project's room: fixes 7 cm off; 0.3 deg: 20 cm off or none). All points shift together under a
 pitch, so the markers' rows observe it and the loose prior costs precision only where the markers
-are all at one range. A fit that needs |epsilon| > ``max_roll_sigmas`` ``pitch_sigma`` is no fix
-(the kinematics or the correspondences are wrong: points all on one ray fit any pose with a large
-pitch). A point projects as
+are all at one range. The camera's own constant tilt on its mount (what getTransform omits) is
+learnt from standing fixes (agent/camera_tilt.py): T_BC is first corrected by its estimate, and
+the prior on t = (delta, epsilon) is N(0, Sigma_t), Sigma_t = diag(sigma_roll^2, sigma_pitch^2) +
+A P A^T, the estimate's covariance P as the head angle maps it onto the torso's roll and pitch
+(a turned head's camera pitch is the torso's roll). A fit that needs |epsilon| > ``max_roll_sigmas``
+sqrt(Sigma_t,pitch) is no fix (the kinematics or the correspondences are wrong: points all on one
+ray fit any pose with a large pitch). A point projects as
 
     X_B = R(theta)^T (X_W - (x, y, 0)),  X_C = R_CB Ry(-epsilon) Rx(-delta) X_B + t_CB,  u = pi(K, X_C).
 
@@ -50,9 +54,9 @@ the consistency check a minimal set is scored by. A rank-deficient system (one p
 one ray) gives no fix.
 
 Refinement: Gauss-Newton on (x, y, theta, delta, epsilon) on every inlier point, delta and epsilon
-held to their priors by one extra residual each:
+held to their prior:
 
-    min sum_i || u_i - pi(X_C,i) ||^2 + (sigma_px delta / sigma_roll)^2 + (sigma_px epsilon / sigma_pitch)^2,
+    min sum_i || u_i - pi(X_C,i) ||^2 + sigma_px^2 t^T Sigma_t^-1 t,
     R_fix = s^2 [(J^T J)^-1]_{xyθ},  s^2 = max(sigma_px^2, sum_i ||r_i||^2 / (2N - 3)),
 
 with the analytic Jacobian dX_B/dx = (-c, s, 0), dX_B/dy = (-s, -c, 0), dX_B/dtheta =
@@ -83,10 +87,10 @@ predicted within ``color_gate`` px (each landmark claimed once). The best consen
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
 Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); a torso roll
-|delta| > ``max_roll_sigmas`` ``roll_sigma`` (the walking prior, also while standing, where the
-tight still prior leaves the calibration's apparent roll of a few tenths of a degree) says the roll
-prior was wrong: the covariance is computed with it widened to sigma_delta = |delta|
-(H_dd += sigma_px^2 / delta^2 - sigma_px^2 / sigma_delta^2). With markers low in one band the
+|delta| > ``max_roll_sigmas`` max(``roll_sigma``, sqrt(Sigma_t,roll)) (the walking prior, also while
+standing) says the roll prior was wrong: the covariance is computed with Sigma_t's roll variance
+widened to delta^2. A standing fix that is fused also teaches the tilt: the information of its data
+alone on t (the Schur complement of J^T J onto t) and the vector it gives (agent/camera_tilt.py). With markers low in one band the
 lateral position, the heading and delta trade against each other and the pose covariance then says
 so (the jump gate, the precision gate and the fusion weigh it); with markers at several heights
 delta is observed and the pose stays precise. Position std

@@ -34,10 +34,11 @@ last ``VIEWS_KEPT``); before the first fix the filter runs in O. At the first fi
 correction T_WO = pose_W (+) odom^-1, each kept measurement is moved into W (cam_xy <- T_WO cam_xy,
 psi += theta_WO; phi, relative to psi, is unchanged) and the filter is rebuilt from them in order:
 the estimate of the odometry frame becomes the same estimate in W. The same happens when a fix
-moves the pose by more than ``mission.relocalize_shift`` (m, or rad of heading): a wrong fix (a
-cold colour hypothesis on the far side of a wall) corrected; the estimate built on it is rebuilt
-from the same views under the new correction, the coverage likewise (measured: matrix seed 23
-with the camera tilted on its mount, lost without it).
+moves the pose by more than ``mission.relocalize_shift`` (m, or rad of heading) before the mission
+has decided: a wrong fix (a cold colour hypothesis on the far side of a wall) corrected; the
+estimate built on it is rebuilt from the same views under the new correction, the coverage
+likewise (measured: matrix seed 23 with the camera tilted on its mount, lost without it).
+Keyframes already taken keep their cameras (a standing robot takes none before its standstill).
 
 Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the self-calibration
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
@@ -304,6 +305,7 @@ class Pilot:
             if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
                 raise ValueError(f"JPEG does not decode to the camera's {self.camera.width} x {self.camera.height} image")
             T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
+        decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         with guarded("localization"):
             before = self.localizer.pose_at(meta.odom)
             fix = self.localizer.on_frame(image, T_BC, meta.odom, meta.stamp)
@@ -311,7 +313,7 @@ class Pilot:
             world = self.localizer.pose_at(meta.odom)  # at capture time
             if world is not None and not self.anchored:
                 self._reanchor(world, meta.odom)
-            elif world is not None and before is not None and _moved(world, before) > self.config.mission.relocalize_shift:
+            elif not decided and world is not None and before is not None and _moved(world, before) > self.config.mission.relocalize_shift:
                 self.relocalized += 1
                 self._reanchor(world, meta.odom)
                 step.outputs.append(self._ekf_record(t))
@@ -350,7 +352,6 @@ class Pilot:
                     if not (silhouette.touches_bottom and self._near is not None
                             and math.dist(self._near, meta.odom[:2]) < math.dist(near, meta.odom[:2])):
                         self._near = near  # a bottom-cut view (an upper bound) never replaces a nearer point
-        decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam))
