@@ -32,8 +32,10 @@ Measured against the simulator's truth:
   s_true the world's (its true over the configured focal length, less one);
 * the camera tilt error: |b - b_true| of the roll and the pitch of the camera on its mount
   (agent/camera_tilt.py), b the rotation between the reported (/nao/camera/meta) and the corrected
-  (/agent/pose) T_BC of the last logged pose, b_true the world's ``mount_error`` (a principal
-  point error reads as pitch: 1 px is 0.1 deg).
+  (/agent/pose) T_BC of the last logged pose, b_true the world's ``mount_error`` with, in pitch,
+  what the camera's principal point error amounts to (a row shift is a pitch):
+  pitch_true = pitch_mount - (c_y,true - c_y) / f_y, c_y the configured one with the applied
+  self-calibration's d_v.
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
                            [--doc docs/benchmarks.md] [--rebuild]
@@ -202,8 +204,9 @@ def focal_error(applied: List[dict], spec: WorldSpec, resolution: str) -> Tuple[
     return float(np.abs(s - s_true).max()), bool(applied)
 
 
-def tilt_error(log: Path, poses: List[dict], spec: WorldSpec) -> Optional[Tuple[float, float]]:
-    """(|roll error|, |pitch error|) of the camera tilt the mission ended with (module docstring)."""
+def tilt_error(log: Path, poses: List[dict], spec: WorldSpec, resolution: str, applied: List[dict]) -> Optional[Tuple[float, float]]:
+    """(|roll error|, |pitch error|) of the camera tilt the mission ended with, from its /agent/pose
+    records and /agent/self_calibration messages (module docstring)."""
     if not poses:
         return None
     last = poses[-1]
@@ -213,7 +216,9 @@ def tilt_error(log: Path, poses: List[dict], spec: WorldSpec) -> Optional[Tuple[
     R = np.asarray(reported, dtype=float).reshape(4, 4)[:3, :3].T @ np.asarray(last["T_BC"], dtype=float).reshape(4, 4)[:3, :3]
     omega = cv2.Rodrigues(R)[0].ravel()  # optical axes: roll about z, pitch down about -x
     roll, pitch = spec.config.noise.mount_error
-    return abs(float(omega[2]) - roll), abs(float(-omega[0]) - pitch)
+    true, configured = spec.robot.camera.intrinsics(resolution), load_robot_model().camera.intrinsics(resolution)
+    c_y = configured.cy + (applied[-1]["error"][3] if applied else 0.0)
+    return abs(float(omega[2]) - roll), abs(float(-omega[0]) - (pitch - (true.cy - c_y) / true.fy))
 
 
 def _final_decision_time(log: Path) -> Optional[float]:
@@ -278,8 +283,9 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
         poses = [m.json() for m in messages if m.topic == POSE]
         pose_error, heading_error = pose_errors(poses, monitor.trace)
         keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
-        focal = focal_error([m.json() for m in messages if m.topic == SELF_CALIBRATION], spec, resolution)
-        tilt = tilt_error(run / "run.mcap", poses, spec)
+        applied = [m.json() for m in messages if m.topic == SELF_CALIBRATION]
+        focal = focal_error(applied, spec, resolution)
+        tilt = tilt_error(run / "run.mcap", poses, spec, resolution, applied)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
@@ -291,7 +297,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
 
 def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResult:
     """A mission's matrix.json, its centre and radius errors taken again from its result.json and its
-    focal error from its log (module docstring)."""
+    focal and tilt errors from its log (module docstring)."""
     fields = json.loads(path.read_text())
     fields = {k: tuple(v) if isinstance(v, list) and k != "world" else v for k, v in fields.items()}
     run = path.parent / "run"
@@ -301,6 +307,8 @@ def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResul
     if (run / "run.mcap").exists():
         applied = [m.json() for m in read_log(run / "run.mcap", topics={SELF_CALIBRATION})]
         fields["focal_error"], fields["self_calibrated"] = focal_error(applied, spec, resolution)
+        poses = [m.json() for m in read_log(run / "run.mcap", topics={POSE})]
+        fields["tilt_error"] = tilt_error(run / "run.mcap", poses, spec, resolution, applied)
     return MissionResult(**fields)
 
 
