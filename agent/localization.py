@@ -83,7 +83,10 @@ every pair of distinct landmarks of
 their colours is a minimal hypothesis (the linear seed on two points); those with |(a, b)| within
 ``pair_scale_tolerance`` of 1 are scored by the blobs that have a landmark of their colour
 predicted within ``color_gate`` px (each landmark claimed once). The best consensus of at least
-``min_points`` blobs is refined; it must beat every hypothesis with a different pose (more than
+``min_points`` blobs is refined (a hypothesis with a landmark out of ``max_range`` or behind the
+camera, or the robot more than ``max_outside_balls`` outside the floor the map's balls enclose,
+agent/keep_in.py, is none: a wrong one placed the robot 2 m behind a wall, matrix seed 30); it must
+beat every hypothesis with a different pose (more than
 ``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
 
 Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); a torso roll
@@ -157,6 +160,7 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
+from agent.keep_in import KeepIn
 from agent.marker_corners import refine_corners
 from agent.perception import PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
@@ -195,6 +199,7 @@ class LocalizationParams:
     single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
+    max_outside_balls: float = field(metadata=bounds(0.0, 100.0))  # m: ... or the robot further than this outside the floor the balls enclose
     jump_sigmas: float = field(metadata=bounds(0.0, 100.0))  # jump gate in standard deviations
     max_roll_sigmas: float = field(metadata=bounds(0.5, 100.0))  # roll beyond this many prior std widens the covariance; pitch beyond it is no fix
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
@@ -655,6 +660,8 @@ class RobotLocalizer:
         self.landmark_map = landmark_map
         self.perception = perception_params
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
+        # the floor the colour balls enclose (agent/keep_in.py): a cold hypothesis outside it is behind a wall
+        self._balls = KeepIn(LandmarkMap(tuple(lm for lm in landmark_map.landmarks if lm.kind == "color")))
         self._correction: Optional[Pose] = None  # W <- odometry frame
         self.covariance = np.full((3, 3), np.nan)
         self._intrinsics_covariance = np.zeros((4, 4))  # of (s_x, s_y, d_u, d_v): what the camera's K may be off by
@@ -1100,7 +1107,8 @@ class RobotLocalizer:
 
     def _plausible(self, model: PlanarModel, p: np.ndarray, X: np.ndarray) -> bool:
         X_C = model.to_camera(p, X)
-        return bool(np.all(X_C[:, 2] > MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
+        inside = np.all(self._balls.distances(np.asarray(p[:2], float)) >= -self.params.max_outside_balls)
+        return bool(inside and np.all(X_C[:, 2] > MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
 
     def _consensus(self, model: PlanarModel, poses: np.ndarray, blobs_uv: np.ndarray, same: np.ndarray,
                    L: np.ndarray, markers: _Points) -> np.ndarray:
