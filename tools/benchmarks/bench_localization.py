@@ -13,7 +13,7 @@ on its mount not yet learnt (agent/camera_tilt.py: a mission's first standing fr
 tilt learnt*: the same, the tilt learnt (its std at ``camera_tilt_floor``: the rest of a mission's
 standing frames); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking); two baselines, cold: *pitch held* to T_BC's
-(``pitch_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
+(``pitch_sigma`` and ``camera_tilt_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
 (``aruco_edge_refinement`` off: the corners biased inwards, agent/marker_corners.py). "well-posed" is
 the share of counted frames whose predicted fix (``predicted_fix`` at the true pose) is within half
 the precision gate, and the fixes among them.
@@ -57,7 +57,8 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     config = dataclasses.replace(load_sim_config(), landmarks=f"landmarks/{name}.yaml", room=Room(half_size, 2.0))
     world = SimWorld("can", robot, "vga", seed=1, config=config)
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
-    held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD), world.landmarks, camera, perception)
+    held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD, camera_tilt_sigma=(HELD, HELD)), world.landmarks, camera,
+                          perception)
     learnt = RobotLocalizer(dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2), world.landmarks,
                             camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
