@@ -204,13 +204,28 @@ def focal_error(applied: List[dict], spec: WorldSpec, resolution: str) -> Tuple[
     return float(np.abs(s - s_true).max()), bool(applied)
 
 
-def tilt_error(log: Path, poses: List[dict], spec: WorldSpec, resolution: str, applied: List[dict]) -> Optional[Tuple[float, float]]:
+def _log_records(log: Path) -> Tuple[List[dict], List[dict], Dict[int, list]]:
+    """The log's /agent/pose records, /agent/self_calibration messages and reported T_BC by frame seq, in one read."""
+    poses, applied, reported = [], [], {}
+    for m in read_log(log, topics={POSE, SELF_CALIBRATION, FRAME_META}):
+        record = m.json()
+        if m.topic == POSE:
+            poses.append(record)
+        elif m.topic == SELF_CALIBRATION:
+            applied.append(record)
+        else:
+            reported[record.get("seq")] = record.get("T_BC")
+    return poses, applied, reported
+
+
+def tilt_error(poses: List[dict], reported_T_BC: Dict[int, list], spec: WorldSpec, resolution: str,
+               applied: List[dict]) -> Optional[Tuple[float, float]]:
     """(|roll error|, |pitch error|) of the camera tilt the mission ended with, from its /agent/pose
-    records and /agent/self_calibration messages (module docstring)."""
+    records, the reported T_BC of their frames and its /agent/self_calibration messages (module docstring)."""
     if not poses:
         return None
     last = poses[-1]
-    reported = next((m.json()["T_BC"] for m in read_log(log, topics={FRAME_META}) if m.json().get("seq") == last["seq"]), None)
+    reported = reported_T_BC.get(last["seq"])
     if reported is None:
         return None
     R = np.asarray(reported, dtype=float).reshape(4, 4)[:3, :3].T @ np.asarray(last["T_BC"], dtype=float).reshape(4, 4)[:3, :3]
@@ -279,13 +294,11 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     decided = _final_decision_time(run / "run.mcap") if (run / "run.mcap").exists() else None
     pose_error, heading_error, keyframe_shift, focal, tilt = None, None, None, (None, False), None
     if (run / "run.mcap").exists():
-        messages = list(read_log(run / "run.mcap", topics={POSE, SELF_CALIBRATION}))
-        poses = [m.json() for m in messages if m.topic == POSE]
+        poses, applied, reported = _log_records(run / "run.mcap")
         pose_error, heading_error = pose_errors(poses, monitor.trace)
         keyframe_shift = keyframe_shifts(run / "run.mcap", poses, renders, spec, resolution)
-        applied = [m.json() for m in messages if m.topic == SELF_CALIBRATION]
         focal = focal_error(applied, spec, resolution)
-        tilt = tilt_error(run / "run.mcap", poses, spec, resolution, applied)
+        tilt = tilt_error(poses, reported, spec, resolution, applied)
     if decided is not None:
         after = [c.time for c in calls if c.time >= decided and (c.name in STOP_CALLS or (c.name == "ALMotion.move" and not any(c.args)))]
         stop_delay = after[0] - decided if after else None
@@ -305,10 +318,9 @@ def _stored_result(path: Path, spec: WorldSpec, resolution: str) -> MissionResul
     fields["radius_error"] = _radius_error(estimate, spec) if estimate else None
     fields["centre_error"], fields["filter_centre_error"] = _centre_errors(estimate, spec) if estimate else (None, None)
     if (run / "run.mcap").exists():
-        applied = [m.json() for m in read_log(run / "run.mcap", topics={SELF_CALIBRATION})]
+        poses, applied, reported = _log_records(run / "run.mcap")
         fields["focal_error"], fields["self_calibrated"] = focal_error(applied, spec, resolution)
-        poses = [m.json() for m in read_log(run / "run.mcap", topics={POSE})]
-        fields["tilt_error"] = tilt_error(run / "run.mcap", poses, spec, resolution, applied)
+        fields["tilt_error"] = tilt_error(poses, reported, spec, resolution, applied)
     return MissionResult(**fields)
 
 
