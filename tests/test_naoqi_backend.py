@@ -540,9 +540,14 @@ def test_a_failing_sampler_read_drops_frames_until_it_recovers():
         assert backend.grab_frame(2.0) is not None
         transform = world.camera_in_robot_nao
         world.camera_in_robot_nao = lambda: (_ for _ in ()).throw(RuntimeError("joint sensors lost"))
-        outage = [backend.grab_frame(0.5) for _ in range(3)]  # the history stops at the outage
+        injected = time.time()
+        outage = [backend.grab_frame(0.5) for _ in range(4)]  # the history stops at the outage
+        last_sample = backend.kinematics.samples()[-1].stamp
         world.camera_in_robot_nao = transform
         recovered = backend.grab_frame(2.0)
         backend.close()
-    assert outage == [None, None, None] and recovered is not None
+    # a frame captured before the failure (in flight when it was injected) still has its kinematics
+    assert last_sample < injected + 0.1
+    assert all(frame.stamp <= last_sample for frame in outage if frame is not None)
+    assert outage[-3:] == [None, None, None] and recovered is not None
     assert set(backend.kinematics_dropped) <= {"after_history", "history_gap"} and backend.kinematics_dropped
