@@ -28,6 +28,7 @@ import argparse
 import contextlib
 import dataclasses
 import datetime
+import fcntl
 import json
 import logging
 import signal
@@ -238,6 +239,8 @@ def connected(args: argparse.Namespace, config: StationConfig, out: Path, timeou
 
 # start --------------------------------------------------------------------------------------------
 
+LOCK_FILE = ".station.lock"
+
 
 class Interrupts:
     """SIGINT/SIGTERM set a flag the control loop reads (the robot is stopped by the loop)."""
@@ -254,6 +257,21 @@ class Interrupts:
         return self.signal_name
 
 
+@contextlib.contextmanager
+def claimed(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on the run folder ``out`` (``.station.lock``, released when the process
+    ends however it ends): two missions writing one run.mcap would interleave their chunks and
+    leave neither log readable. A folder in use is a ConfigError naming it."""
+    path = out / LOCK_FILE
+    with open(path, "a+b") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"{out}: another station is writing a mission into this folder (it holds {path}); "
+                              "give this one its own --out") from None
+        yield
+
+
 def start(args: argparse.Namespace) -> int:
     config = load_station_config(args.config)
     if args.max_duration is not None:
@@ -261,6 +279,12 @@ def start(args: argparse.Namespace) -> int:
     resolution = args.resolution or config.station.resolution
     out = args.out or Path("runs") / datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
+    with claimed(out):
+        return _mission(args, config, resolution, out)
+
+
+def _mission(args: argparse.Namespace, config: StationConfig, resolution: str, out: Path) -> int:
+    """``station start`` in the claimed folder ``out``: the bridge, the loop, the log and the outputs."""
     interrupts = Interrupts()
     console = logs.LogTopicHandler()  # the console from here on goes into the run log too
     logging.getLogger(logs.LOGGER).addHandler(console)

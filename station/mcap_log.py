@@ -174,7 +174,13 @@ def read_log(path: Union[str, Path], topics: Optional[set] = None) -> Iterator[L
                                                                  log_time_order=False):
                 yield _message(schema, channel, message)
         except Exception as exc:  # noqa: BLE001 - a damaged chunk behind a valid summary
-            raise LogError(f"{path}: damaged MCAP data: {exc!r}") from None
+            raise LogError(f"{path}: damaged MCAP data: {_short(exc)}") from None
+
+
+def _short(exc: Exception, limit: int = 200) -> str:
+    """An exception named in one line: a parser's message may quote kilobytes of the damaged bytes."""
+    text = f"{type(exc).__name__}: {exc}"
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
 def _linear(stream, topics: Optional[set]) -> Iterator[LogMessage]:

@@ -29,7 +29,7 @@ from agent.carving import VoxelCarver
 from agent.ekf import position_std
 from agent.mission import Outcome
 from nao_core.protocol import State, Truth, TruthObject, decode
-from station.mcap_log import read_log
+from station.mcap_log import LogError, read_log
 from station.topics import COVERAGE, KEYFRAME, STATE, TRUTH
 
 RESULT_VERSION = 1
@@ -109,8 +109,15 @@ def model_accuracy(carver: VoxelCarver, obj: TruthObject) -> Dict[str, float]:
 
 
 def build_result(summary, log_path: Path, files: Dict[str, Any], resolution: str) -> Dict[str, Any]:
-    """The result.json document of a run (``summary``: station.run.RunSummary); the log may be missing."""
-    figures = log_figures(log_path) if log_path.exists() else {"path_length": 0.0, "coverage": None, "keyframes": 0, "truth": None}
+    """The result.json document of a run (``summary``: station.run.RunSummary); the log may be missing
+    or damaged: the log's figures are then absent and ``files["log_error"]`` says why."""
+    figures = {"path_length": 0.0, "coverage": None, "keyframes": 0, "truth": None}  # no log: nothing was walked
+    if log_path.exists():
+        try:
+            figures = log_figures(log_path)
+        except LogError as exc:  # the mission's own outcome and estimate do not depend on reading it back
+            figures = {"path_length": None, "coverage": None, "keyframes": None, "truth": None}  # unknown
+            files["log_error"] = str(exc)
     x, P = summary.x, summary.P
     metrics = summary.carver.metrics() if summary.carver is not None else None
     estimate: Optional[Dict[str, Any]] = None

@@ -72,6 +72,24 @@ def test_unreachable_robot_writes_result(tmp_path):
     assert json.loads((tmp_path / "run" / "result.json").read_text())["outcome"] == "bridge_unavailable"
 
 
+def test_a_run_folder_in_use_is_refused_and_left_untouched(capsys, tmp_path):
+    """A second mission into a folder another station holds exits 2 naming it, before it connects
+    or writes anything; once the folder is free the same command runs."""
+    from station.cli import claimed
+
+    override = tmp_path / "o.yaml"
+    override.write_text("station:\n  port: 9\n  bridge_timeout: 1.0\n")
+    out = tmp_path / "run"
+    out.mkdir()
+    command = ("start", "--robot", "127.0.0.1", "--config", str(override), "--out", str(out))
+    with claimed(out):
+        returncode, stderr = station_here(capsys, *command)
+        assert returncode == 2 and "another station is writing a mission into this folder" in stderr and str(out) in stderr
+        assert sorted(p.name for p in out.iterdir()) == [".station.lock"]
+    returncode, stderr = station_here(capsys, *command)
+    assert returncode == 2 and json.loads((out / "result.json").read_text())["outcome"] == "bridge_unavailable"
+
+
 def test_started_bridge_that_exits_ends_the_start_with_its_log(tmp_path):
     """Nothing listens on the NAOqi port: the bridge exits at once; the station does not wait out
     bridge_timeout (set far above anything the test harness would allow) and shows why."""

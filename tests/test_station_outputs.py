@@ -14,7 +14,7 @@ from nao_core.protocol import State, Truth, encode, json_schema
 from nao_core.protocol.messages import TruthObject
 from nao_core.robot_model import load_robot_model
 from station import foxglove
-from station.mcap_log import McapLog
+from station.mcap_log import LogError, McapLog, read_log
 from station.report import write_report
 from station.result import (
     EXIT_FAILURE,
@@ -106,6 +106,31 @@ def test_report_writes_every_figure(synthetic_log, tmp_path):
     written = write_report(synthetic_log, tmp_path / "report", progress=False)
     assert sorted(p.name for p in written) == ["cameras.png", "errors.png", "progress.png", "trajectory.png"]
     assert all(p.stat().st_size > 10_000 for p in written)
+
+
+def test_a_damaged_log_costs_the_result_its_log_figures_only(synthetic_log, tmp_path):
+    """A chunk damaged behind a valid summary: reading it back fails with one short line naming the
+    log, and result.json still holds the mission's outcome and estimate, with the reason beside."""
+    from mcap.reader import make_reader
+
+    from station.run import RunSummary
+
+    data = bytearray(synthetic_log.read_bytes())
+    with open(synthetic_log, "rb") as stream:
+        chunk = make_reader(stream).get_summary().chunk_indexes[0]
+    start = chunk.chunk_start_offset + chunk.chunk_length - chunk.compressed_size // 2  # inside the compressed data
+    data[start:start + 64] = bytes(64)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(LogError, match="damaged MCAP data") as error:
+        list(read_log(damaged))
+    assert str(damaged) in str(error.value) and len(str(error.value)) < 300 + len(str(damaged))
+    x, P = np.array([0.2, -0.1, 0.05]), np.diag([1e-6, 1e-6, 1e-7])
+    summary = RunSummary(Outcome.COMPLETED.value, "coverage reached", True, 10, 10, 1.0, None, None, x, P)
+    result = build_result(summary, damaged, {}, "vga")
+    assert result["status"] == "success" and result["object"]["x"] == pytest.approx(0.2)
+    assert result["path_length"] is None and "damaged MCAP data" in result["files"]["log_error"]
+    assert build_result(summary, synthetic_log, {}, "vga")["path_length"] == pytest.approx(4.0)
 
 
 @pytest.mark.parametrize("outcome, source", [(Outcome.COMPLETED.value, "model"), (Outcome.TIME_LIMIT.value, "filter")])
