@@ -1,4 +1,5 @@
-"""The camera's latency from its own images, for a NAOqi whose clock cannot be probed.
+"""When a frame's image was taken, from the images themselves: the camera's latency for a NAOqi
+whose clock cannot be probed, and the exposure's offset from the stamps of one that can.
 
 Without ``ALMemory.getTimestamp`` and with the robot's clock off the bridge's, a frame's capture
 time is known only up to the camera's shortest latency L: the camera bound b_k (docs/frames.md)
@@ -20,6 +21,14 @@ on its own, so the turn between two frames is taken modulo 2 pi (a heading cross
 history slides shifts a whole unwrapped history by 2 pi, and an unwrapped difference would then
 predict a full turn between two frames). No estimate until
 ``min_pairs`` such pairs; the estimate holds when the best residual beats the no-latency one.
+
+Stamped frames (a probed or synchronized clock) need the same estimate for another reason: a
+frame's image is the mean over its exposure (5-30 ms indoors) while the camera turns, so its scene
+is where the camera looked in the exposure's middle, whatever instant the stamp names (its start,
+its end). The grid is then [-``max_latency``, ``max_latency``] about the stamp (``min_latency``
+negative): tau is how much earlier than its stamp the image's scene was seen, half the exposure
+for a stamp at the exposure's end. Uncorrected, a 24 ms exposure stamped at its end put the
+landmark fixes of a turning robot 1-3 cm off (docs/frames.md, "Exposure").
 """
 
 from __future__ import annotations
@@ -46,8 +55,12 @@ def camera_heading(odom_theta: np.ndarray, T_robot_camera: np.ndarray) -> np.nda
 class LatencyEstimator:
     """tau, the camera bound's lateness, from image shifts against the camera's turns (module docstring)."""
 
-    def __init__(self, max_latency: float, focal_px: float, image_width: int, window: int = 300, min_pairs: int = 20):
-        self.taus = np.arange(0.0, max_latency + 1e-9, STEP)
+    def __init__(self, max_latency: float, focal_px: float, image_width: int, window: int = 300, min_pairs: int = 20,
+                 min_latency: float = 0.0):
+        if not min_latency <= 0.0 <= max_latency:
+            raise ValueError(f"latency grid [{min_latency}, {max_latency}] s must hold 0")
+        self.taus = STEP * np.arange(round(min_latency / STEP), round(max_latency / STEP) + 1)
+        self._zero = int(np.argmin(np.abs(self.taus)))  # the no-latency candidate
         self.focal = focal_px * THUMB_WIDTH / image_width  # in thumbnail pixels
         self.min_pairs = min_pairs
         self._window = window
@@ -96,5 +109,5 @@ class LatencyEstimator:
             self.pairs_used += 1
         if self.pairs_used >= self.min_pairs:
             best = int(np.argmin(self._residual))
-            if self._residual[best] < self._residual[0]:
+            if self._residual[best] < self._residual[self._zero]:
                 self.tau = float(self.taus[best])

@@ -61,6 +61,12 @@ min_k (r_k - s_k) - offset_probe, must lie in [-(t1 - t0) / 2, ``camera_latency_
 
 with one warning naming which.
 
+Exposure. A stamp names one instant of an exposure of 5-30 ms, which while the camera turns is
+not the instant the image shows (its middle). Stamped frames (probe or synchronized clocks) are
+therefore stamped s_k + offset - e, with e the exposure offset their images show against the
+kinematics (nao_bridge/camera_latency.py), learnt in [-``exposure_offset_max``,
+``exposure_offset_max``]; frames on the camera bound get e within their latency.
+
 Capture-time kinematics. NAOqi does not return the joint angles with an image, and the image
 arrives tens of ms after its capture, while the torso rolls and the head turns. A sampler thread
 reads ``getAngles``, ``getTransform`` and ``getRobotPosition`` at ``kinematics_rate`` into a
@@ -122,6 +128,7 @@ class NaoqiParams:
     clock_window: int = field(metadata=bounds(1, 100000))  # frames in the offset minimum
     camera_latency_min: float = field(metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
     camera_latency_max: float = field(metadata=bounds(0.0, 10.0))  # s, longest plausible shortest latency
+    exposure_offset_max: float = field(metadata=bounds(0.0, 0.5))  # s, farthest a stamped image's scene lies from its stamp
     clock_probe_rate: float = field(metadata=bounds(0.0, 100.0))  # Hz of ALMemory clock probes (0: camera only)
     clock_probe_window: int = field(metadata=bounds(1, 100000))  # probes in the shortest-round-trip choice
     kinematics_rate: float = field(metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
@@ -228,8 +235,11 @@ class NaoqiBackend(RobotBackend):
         self._stop_sampling = threading.Event()
         intrinsics = model.camera.intrinsics(resolution)
         self.image_size = (int(intrinsics.width), int(intrinsics.height))
-        self.latency = LatencyEstimator(params.camera_latency_max, float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width))
-        self._logged_latency = 0.0
+        focal, width = float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width)
+        self.latency = LatencyEstimator(params.camera_latency_max, focal, width)  # frames on the camera bound
+        self.exposure = LatencyEstimator(params.exposure_offset_max, focal, width, min_latency=-params.exposure_offset_max)  # stamped
+        self._logged_tau = {self.latency: 0.0, self.exposure: 0.0}  # the last tau of each told in the log
+        self._unlearnt: Optional[Tuple[np.ndarray, float]] = None  # the last frame and its stamp, not yet learnt from
         self._last_drop_log = -math.inf
         self._walk_commanded = False  # the last walk command was not a stop: "walking" without moveIsActive
         self._motion_lacks: Set[str] = set()  # of OPTIONAL_MOTION, found missing at start
@@ -385,8 +395,11 @@ class NaoqiBackend(RobotBackend):
         """The frame with its kinematics at the capture stamp; None (counted) if the history has none there."""
         stamp = self._capture_stamp(robot_stamp, received)
         bgr = self._to_subscribed_size(image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6]))
-        if self.clock_source == "camera":
-            self._learn_latency(bgr, stamp + self.latency.tau)
+        # learnt a frame late, when the history holds the instants after its stamp that an exposure may show
+        pending, self._unlearnt = self._unlearnt, (bgr, stamp)
+        if pending is not None:
+            learner = self.latency if self.clock_source == "camera" else self.exposure
+            self._learn_latency(learner, pending[0], pending[1] + learner.tau)  # from the stamp before its correction
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
         kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
@@ -419,23 +432,25 @@ class NaoqiBackend(RobotBackend):
                          f"({self.resolution}) subscription: resized to {width}x{height}")
         return cv2.resize(bgr, (width, height), interpolation=cv2.INTER_AREA if got_width > width else cv2.INTER_LINEAR)
 
-    def _learn_latency(self, bgr: np.ndarray, bound_stamp: float) -> None:
-        """Feed the camera-latency estimator (nao_bridge/camera_latency.py) the frame, its camera-bound
-        stamp and the camera's headings over the history."""
+    def _learn_latency(self, learner: LatencyEstimator, bgr: np.ndarray, stamp: float) -> None:
+        """Feed a latency estimator (nao_bridge/camera_latency.py: the camera bound's latency, or a stamped
+        frame's exposure offset) the frame, its uncorrected stamp and the camera's headings over the history."""
         samples = self.kinematics.samples()
         if len(samples) < 2:
             return
         stamps = np.array([k.stamp for k in samples])
         headings = camera_heading(np.array([k.odom[2] for k in samples]), np.array([k.T for k in samples]))
-        self.latency.add(bgr, bound_stamp, (stamps, np.unwrap(headings)))
-        if abs(self.latency.tau - self._logged_latency) >= 0.01:
-            self._logged_latency = self.latency.tau
-            log.info("NAOqi camera latency from the images: frames stamped %.0f ms before the camera bound (%d turning pairs)",
-                     1e3 * self.latency.tau, self.latency.pairs_used)
+        learner.add(bgr, stamp, (stamps, np.unwrap(headings)))
+        if abs(learner.tau - self._logged_tau[learner]) >= 0.005:
+            self._logged_tau[learner] = learner.tau
+            what = "before the camera bound" if learner is self.latency else "before their NAOqi stamps (the exposure's middle)"
+            log.info("NAOqi frames from their images: stamped %.0f ms %s (%d turning pairs)", 1e3 * learner.tau, what,
+                     learner.pairs_used)
 
     def _capture_stamp(self, robot_stamp: float, received: float) -> float:
         """The frame's capture time on the bridge clock: by the probe while it agrees with the camera
-        bound; without it, the robot's stamp itself when the clocks agree, else the camera bound."""
+        bound; without it, the robot's stamp itself when the clocks agree, else the camera bound; less
+        the latency or exposure offset the images show (module docstring)."""
         camera_stamp = self._clock.update(robot_stamp, received)
         probe = self._probe.best()
         if probe is not None:
@@ -443,7 +458,7 @@ class NaoqiBackend(RobotBackend):
             shortest_latency = self._clock.bound - offset
             if -error - 1e-3 <= shortest_latency <= self.params.camera_latency_max:
                 self.clock_source = "probe"
-                return robot_stamp + offset
+                return robot_stamp + offset - self.exposure.tau
             self._warn_once("negative" if shortest_latency < 0.0 else "too long",
                              f"NAOqi clock probe disagrees with the camera (shortest latency {shortest_latency:.3f} s): "
                              "ALMemory and the camera stamp on different clocks?")
@@ -451,7 +466,7 @@ class NaoqiBackend(RobotBackend):
             self.clock_source = "synchronized"  # robot stamps already on the bridge clock, as NTP keeps them
             self._warn_once("synchronized", f"NAOqi image stamps agree with this clock (shortest latency "
                              f"{self._clock.bound:.3f} s): clocks taken as synchronized, frames stamped as the robot stamps them")
-            return robot_stamp
+            return robot_stamp - self.exposure.tau
         self.clock_source = "camera"
         self._warn_once("camera", "NAOqi robot clock off this one and no clock probe: frames stamped by the camera's "
                          "latency bound less the latency its images show (docs/frames.md)")

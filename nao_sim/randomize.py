@@ -19,8 +19,10 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   RGB), drawn after the above so that their draws for a seed do not depend on it;
 * the sensor: pixel noise, optical blur and the room's brightness (exposure) in
   ``pixel_sigma``, ``blur_sigma`` and ``exposure``;
-* the camera on its mount, drawn last: a roll and a pitch uniform within +-``mount_error`` that
-  the reported camera transform omits (agent/camera_tilt.py learns them).
+* the camera on its mount: a roll and a pitch uniform within +-``mount_error`` that
+  the reported camera transform omits (agent/camera_tilt.py learns them);
+* drawn last, the shutter: an exposure time U(``shutter``) over which the camera's rotation
+  blurs the frame (docs/simulator.md, "The camera image").
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -67,6 +69,7 @@ class Randomizer:
     blur_sigma: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # px at VGA
     exposure: Tuple[float, float] = field(metadata=bounds(0.1, 3.0))  # mean brightness factor
     mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
+    shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
@@ -100,7 +103,8 @@ class WorldSpec:
                 "drop_rate": round(noise.drop_rate, 3), "latency": [round(x, 3) for x in noise.latency],
                 "bare_naoqi": self.bare_naoqi, "pixel_sigma": round(noise.pixel_sigma, 2),
                 "blur_sigma": round(noise.blur_sigma, 2), "exposure": round(noise.exposure, 2),
-                "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error]}
+                "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error],
+                "shutter_ms": round(1e3 * noise.shutter, 1)}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -151,6 +155,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     sensor = dataclasses.replace(noise, pixel_sigma=float(rng.uniform(*r.pixel_sigma)),  # last
                                  blur_sigma=float(rng.uniform(*r.blur_sigma)), exposure=float(rng.uniform(*r.exposure)))
     sensor = dataclasses.replace(sensor, mount_error=tuple(float(m) for m in rng.uniform(-1.0, 1.0, 2) * r.mount_error))
+    sensor = dataclasses.replace(sensor, shutter=float(rng.uniform(*r.shutter)))  # drawn after the rest: their draws stay
     config = dataclasses.replace(config, noise=sensor)
     return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
                      true_robot, (x, y, heading), bare)

@@ -26,6 +26,15 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   ``cv2.aruco.generateImageMarker`` mapped onto the projected corners by ``cv2.warpPerspective``;
 * colour landmarks: a disc of the landmark's diameter facing the camera (a ball's outline), on a post.
 
+Motion blur: the shutter is open from the camera orientation R_0 (``R_open``) to R_1 (the pose
+drawn). The camera's translation over an exposure (a few mm) is neglected; its rotation maps the
+image drawn at R_1 to the one at R_s = R_1 exp(s [w]_x), w = log(R_1^T R_0), by the homography
+
+    I_s(u) = I_1(H_s u),   H_s = K R_1^T R_s K^-1,   s in [0, 1],
+
+and the frame is the mean of I_s over n = ceil(max pixel displacement) + 1 evenly spaced s (at most
+``MOTION_SAMPLES``): a box blur along the image motion, as a rotating camera integrates light.
+
 Finally the sensor: a Gaussian optical blur of ``blur_sigma`` px at VGA (scaled to the resolution),
 the scene's ``exposure`` times a per-frame gain jitter, and Gaussian pixel noise (a seeded pool).
 Polygon edges are straight between projected vertices: exact for the default zero distortion.
@@ -35,7 +44,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, List, Sequence, Tuple, Union
+from typing import Callable, List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
@@ -50,6 +59,7 @@ SUPERSAMPLE = 8  # sub-pixels per pixel side for the area-exact anti-aliasing of
 LIGHT = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])  # direction towards the light, world
 AMBIENT = 0.55
 TEXELS_PER_M = 256  # floor and wall textures repeat every metre
+MOTION_SAMPLES = 24  # most shifted copies averaged for the motion blur
 BOARD_MARGIN = 0.25  # white quiet zone around a marker, fraction of its side
 POST_RADIUS = 0.01  # m
 COLOURS_BGR = {
@@ -467,8 +477,9 @@ class Renderer:
         h, w = self.intrinsics.height, self.intrinsics.width
         return cv2.remap(self._atlas, u.reshape(h, w), v.reshape(h, w), cv2.INTER_NEAREST, borderMode=cv2.BORDER_WRAP)
 
-    def render(self, T_WC: np.ndarray, frame_index: int) -> np.ndarray:
-        """The camera image at T_WC; ``frame_index`` seeds this frame's noise (deterministic)."""
+    def render(self, T_WC: np.ndarray, frame_index: int, R_open: Optional[np.ndarray] = None) -> np.ndarray:
+        """The camera image at T_WC; ``frame_index`` seeds this frame's noise (deterministic);
+        ``R_open``: the camera's orientation (R_WC) when the shutter opened (motion blur), None: a still camera."""
         T_WC = np.asarray(T_WC, dtype=float)
         image = self.background(T_WC)
         h, w = self.intrinsics.height, self.intrinsics.width
@@ -479,7 +490,29 @@ class Renderer:
         for i in np.argsort(depth)[::-1]:
             if in_view[i]:
                 self._items[i].draw(image, view)
+        if R_open is not None:
+            image = self._motion_blur(image, T_WC[:3, :3], np.asarray(R_open, dtype=float))
         return self._sensor(image, frame_index)
+
+    def _motion_blur(self, image: np.ndarray, R_1: np.ndarray, R_0: np.ndarray) -> np.ndarray:
+        """The mean of the image over the shutter's rotation from R_0 to R_1 (module docstring)."""
+        w = cv2.Rodrigues(R_1.T @ R_0)[0].ravel()
+        K = self.intrinsics.K
+        K_inv = np.linalg.inv(K)
+        h, wd = image.shape[:2]
+        corners = np.array([[0.0, 0.0, 1.0], [wd, 0.0, 1.0], [0.0, h, 1.0], [wd, h, 1.0], [wd / 2, h / 2, 1.0]]).T
+        H_0 = K @ cv2.Rodrigues(w)[0] @ K_inv  # R_1^T R_0 = exp([w]_x)
+        moved = H_0 @ corners
+        displacement = float(np.max(np.linalg.norm(moved[:2] / moved[2] - corners[:2], axis=0)))
+        n = min(math.ceil(displacement) + 1, MOTION_SAMPLES)
+        if n < 2:
+            return image
+        total = np.zeros(image.shape, np.float32)
+        for s in np.linspace(0.0, 1.0, n):
+            H_s = K @ cv2.Rodrigues(s * w)[0] @ K_inv
+            total += cv2.warpPerspective(image, H_s, (wd, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                         borderMode=cv2.BORDER_REPLICATE)
+        return np.clip(total / n + 0.5, 0, 255).astype(np.uint8)
 
     def _sensor(self, image: np.ndarray, frame_index: int) -> np.ndarray:
         """Optical blur, exposure and gain jitter, pixel noise."""

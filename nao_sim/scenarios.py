@@ -193,6 +193,7 @@ class Noise:
     blur_sigma: float = field(metadata=bounds(0.0, 10.0))  # px at VGA, Gaussian optical blur (0: none)
     exposure: float = field(metadata=bounds(0.1, 3.0))  # mean brightness factor of every frame
     mount_error: Tuple[float, float] = field(metadata=bounds(-0.1, 0.1))  # rad, (roll, pitch) of the camera on its mount, unreported
+    shutter: float = field(metadata=bounds(0.0, 0.1))  # s, exposure time: the camera's rotation over it blurs the image
 
     def __post_init__(self) -> None:
         if self.latency[0] > self.latency[1]:

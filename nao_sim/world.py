@@ -392,13 +392,26 @@ class SimWorld:
             state = self._state_at(at)
             stamp = self._time if at is None else self._grid(at)
             T_BC = nao_to_optical(self._camera_nao(state, self._dyn.sway.reported_fraction))
-            T_WC = planar_transform(*state.pose) @ nao_to_optical(self._camera_nao(state, 1.0) @ self._mount)
+            T_WC = self._true_camera(state)
+            R_open = self._shutter_opened(stamp)
             self._frames += 1
             index = self._frames
             self._last_render = (stamp, T_WC)
-        image = self.renderer.render(T_WC, index)
+        image = self.renderer.render(T_WC, index, R_open)
         yaw, pitch = state.head
         return CameraFrame(image=image, stamp=stamp, head_yaw=yaw, head_pitch=pitch, T_BC=T_BC, odom=state.odom)
+
+    def _true_camera(self, state: _Kinematic) -> np.ndarray:
+        """T_WC of the camera as it truly is (the whole sway, the mount error)."""
+        return planar_transform(*state.pose) @ nao_to_optical(self._camera_nao(state, 1.0) @ self._mount)
+
+    def _shutter_opened(self, stamp: float) -> Optional[np.ndarray]:
+        """R_WC when the shutter of a frame stamped ``stamp`` opened (``noise.shutter`` before it); None
+        without a shutter time or before the kept history (caller holds the lock)."""
+        shutter = self.config.noise.shutter
+        if shutter <= 0.0 or stamp - shutter < self._history[0].time:
+            return None
+        return self._true_camera(self._state_at(stamp - shutter))[:3, :3]
 
     def truth(self) -> dict:
         """Ground truth, JSON-able: robot, odometry origin, camera at the last render, object, scenario."""

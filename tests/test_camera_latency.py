@@ -4,6 +4,7 @@ probed (docs/frames.md)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -16,6 +17,7 @@ from nao_bridge.camera_latency import STEP, THUMB_WIDTH, LatencyEstimator
 from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model
+from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import StandIn
 from nao_sim.world import SimWorld
 
@@ -23,10 +25,11 @@ FOCAL = 140.0  # px at the thumbnail's width
 
 
 def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2.0, fps: float = 15.0,
-                  centre: float = 0.0, kept: float = 10.0):
+                  centre: float = 0.0, kept: float = 10.0, lag: float = 0.03):
     """(image, camera-bound stamp, history) of a camera panning sinusoidally over a textured scene:
     frame k is captured at t_k and stamped t_k + tau; psi(t) = centre + sweep sin(2 pi t / period),
-    the history's last ``kept`` s of headings as the backend gives them: read in (-pi, pi], unwrapped."""
+    the history's last ``kept`` s of headings up to ``lag`` after the stamp, as the backend gives
+    them: read in (-pi, pi], unwrapped."""
     rng = np.random.default_rng(0)
     scene = cv2.GaussianBlur(rng.uniform(0, 255, (120, 2000)).astype(np.float32), (0, 0), 2.0)
 
@@ -39,7 +42,7 @@ def panning_views(tau: float, frames: int, sweep: float = 0.6, period: float = 2
         shift = 1000.0 - FOCAL * float(psi(t))  # the scene moves right (+dx) as the camera turns left (+psi)
         view = cv2.warpAffine(scene, np.float32([[1, 0, -shift], [0, 1, 0]]), (THUMB_WIDTH, 120), flags=cv2.INTER_LINEAR)
         image = cv2.cvtColor(np.clip(view, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
-        known = (history_times <= t + tau + 0.03) & (history_times >= t + tau + 0.03 - kept)  # up to the frame's processing
+        known = (history_times <= t + tau + lag) & (history_times >= t + tau + lag - kept)  # up to the frame's processing
         yield image, t + tau, (history_times[known], np.unwrap(np.angle(np.exp(1j * psi(history_times[known])))))
 
 
@@ -50,6 +53,22 @@ def test_the_latency_of_panning_views_is_found(tau):
         estimator.add(image, stamp, history)
     assert estimator.pairs_used >= estimator.min_pairs
     assert estimator.tau == pytest.approx(tau, abs=2 * STEP)
+
+
+@pytest.mark.parametrize("tau", [-0.02, 0.0, 0.012])
+def test_the_exposure_offset_of_stamped_panning_views_is_found_either_way(tau):
+    """Stamped frames: the grid spans both sides of the stamp (a stamp at the exposure's start or end);
+    the backend learns a frame one frame late, when the history holds the instants after its stamp."""
+    estimator = LatencyEstimator(0.04, FOCAL, THUMB_WIDTH, min_latency=-0.04)
+    for image, stamp, history in panning_views(tau, 60, lag=0.03 + 1 / 15):
+        estimator.add(image, stamp, history)
+    assert estimator.pairs_used >= estimator.min_pairs
+    assert estimator.tau == pytest.approx(tau, abs=2 * STEP)
+
+
+def test_a_latency_grid_without_zero_is_refused():
+    with pytest.raises(ValueError, match="must hold 0"):
+        LatencyEstimator(0.04, FOCAL, THUMB_WIDTH, min_latency=0.01)
 
 
 def test_a_heading_crossing_pi_as_the_history_slides_does_not_count_as_a_full_turn():
@@ -99,3 +118,29 @@ def test_a_bare_naoqi_on_another_clock_gets_its_frames_stamped_by_what_they_show
     # (150 kB through libqi: 5-10 ms here, more on a loaded machine)
     assert 0.10 - STEP <= backend.latency.tau <= 0.11 + 0.02
     assert late and max(abs(e) for e in late) < 0.015
+
+
+def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
+    """A probed clock, a 30 ms exposure ending at each NAOqi stamp, the head panning: the images show
+    the scene 15 ms before their stamps; once the turns have taught it, frames are stamped there."""
+    model = load_robot_model()
+    params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi
+    config = load_sim_config()
+    config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, shutter=0.03))
+    world = SimWorld("can", model, resolution="qvga", seed=8, config=config)
+    with StandIn(world, clock_offset=2000.0, latency=(0.05, 0.06)) as standin:
+        backend = NaoqiBackend(standin.url, model, params, "qvga", 15.0)
+        backend.start()
+        started = time.monotonic()
+        while time.monotonic() - started < 20.0 and backend.exposure.pairs_used < backend.exposure.min_pairs:
+            backend.set_head(0.9 if int(time.monotonic() - started) % 2 == 0 else -0.9, 0.1, 0.5)
+            backend.grab_frame(1.0)
+        offsets = []
+        for _ in range(10):
+            frame = backend.grab_frame(1.0)
+            if frame is not None:
+                offsets.append(frame.stamp - standin.video.captures[-1][1])  # served: the last capture, stamped at its end
+        backend.close()
+    assert backend.clock_source == "probe"
+    assert backend.exposure.tau == pytest.approx(0.015, abs=2 * STEP)
+    assert offsets and max(abs(o + 0.015) for o in offsets) < 0.006

@@ -245,6 +245,42 @@ def test_optical_blur_and_exposure_act_on_the_whole_frame():
     assert np.abs(reduced - frames["qvga", 1.0, 1.0]).mean() < np.abs(reduced - frames["qvga", 0.0, 1.0]).mean()
 
 
+def test_motion_blur_is_the_mean_of_the_frames_the_turning_camera_sees():
+    """The homography blur equals, up to the edges, the mean of frames rendered (sharp) at the
+    orientations the shutter swept (render.py docstring): here a yaw of 0.02 rad (12 px at VGA)."""
+    quiet = dataclasses.replace(CONFIG.noise, pixel_sigma=0.0, gain_sigma=0.0)
+    world = world_on_orbit("can", "vga", 0.9, 0.4, config=dataclasses.replace(CONFIG, noise=quiet))
+    renderer = world.renderer
+    world.render()
+    T_1 = np.asarray(world.truth()["camera"]["T_WC"])
+    turn = lambda angle: T_1 @ np.block([[cv2.Rodrigues(np.array([0.0, angle, 0.3 * angle]))[0], np.zeros((3, 1))],  # noqa: E731
+                                         [np.zeros((1, 3)), np.ones((1, 1))]])
+    R_open = turn(0.02)[:3, :3]
+    blurred = renderer.render(T_1, 1, R_open).astype(float)
+    swept = np.mean([renderer.render(turn(a), 1).astype(float) for a in np.linspace(0.0, 0.02, 13)], axis=0)
+    sharp = renderer.render(T_1, 1).astype(float)
+    inner = (slice(20, -20), slice(20, -20))  # the warp replicates the border
+    error = np.abs(blurred - swept)[inner].mean()
+    assert error < 1.5 and error < 0.2 * np.abs(sharp - swept)[inner].mean()
+
+
+def test_a_shutter_blurs_frames_while_the_head_turns_and_not_at_rest():
+    """``noise.shutter``: a frame stamped t integrates the true camera over [t - shutter, t]."""
+    quiet = dataclasses.replace(CONFIG.noise, pixel_sigma=0.0, gain_sigma=0.0)
+    frames = {}
+    for shutter in (0.0, 0.03):
+        clock = FakeClock()
+        config = dataclasses.replace(CONFIG, noise=dataclasses.replace(quiet, shutter=shutter))
+        world = SimWorld("can", ROBOT, "vga", seed=4, config=config, clock=clock)
+        still = world.render().image.astype(float)
+        world.set_head(1.0, 0.1, 0.25)  # 1 rad/s: 0.03 rad in the shutter, 18 px at VGA
+        clock.advance(0.2)
+        frames[shutter] = (still, world.render().image.astype(float))
+    sharpness = lambda image: cv2.Laplacian(image, cv2.CV_64F).var()  # noqa: E731
+    np.testing.assert_array_equal(frames[0.0][0], frames[0.03][0])  # at rest the shutter changes nothing
+    assert sharpness(frames[0.03][1]) < 0.3 * sharpness(frames[0.0][1])
+
+
 # -- landmarks ---------------------------------------------------------------------------------
 
 
