@@ -13,9 +13,12 @@ thumbnails ``THUMB_WIDTH`` px wide, focal length f in thumbnail pixels) is
 
     dx_k = f (psi(b_k - tau) - psi(b_{k-1} - tau)) + e_k,
 
-and tau is the grid value in [0, ``max_latency``] (step ``STEP``) that minimizes sum_k dx_k residual^2
-over the last ``window`` frame pairs whose predicted shift exceeds ``MIN_SHIFT`` px (turns, not
-stillness or walking parallax). psi is interpolated from the history as each frame arrives, for
+and tau is the grid value in [0, ``max_latency``] (step ``STEP``) that minimizes
+sum_k min(r_k^2, ``MAX_RESIDUAL``^2) (r_k: dx_k's residual; the cap keeps a pair the turn does not
+explain, a passer-by or a failed correlation, from choosing tau) over the last ``window`` frame
+pairs whose predicted shift exceeds ``MIN_SHIFT`` px (turns, not stillness) and between which the
+robot travelled at most ``MAX_TRAVEL`` by odometry (a walking robot's floor streams past by
+parallax, which no turn explains). psi is interpolated from the history as each frame arrives, for
 every grid value at once, since the history keeps only the last seconds; each history is unwrapped
 on its own, so the turn between two frames is taken modulo 2 pi (a heading crossing +-pi while the
 history slides shifts a whole unwrapped history by 2 pi, and an unwrapped difference would then
@@ -44,6 +47,8 @@ THUMB_WIDTH = 160  # px: images are correlated at this width
 STEP = 0.002  # s between candidate latencies
 MIN_SHIFT = 2.0  # px (thumbnail): pairs whose predicted shift is smaller say little about tau
 MIN_RESPONSE = 0.05  # phase-correlation peak below this: no reliable shift (blur, a blank view)
+MAX_RESIDUAL = 2.0  # px (thumbnail): a pair's squared residual is capped at this squared
+MAX_TRAVEL = 0.002  # m of odometry travel between a pair's frames: more is walking, whose parallax no turn explains
 
 
 def camera_heading(odom_theta: np.ndarray, T_robot_camera: np.ndarray) -> np.ndarray:
@@ -67,13 +72,15 @@ class LatencyEstimator:
         # per frame pair, its squared residual per tau when informative (predicted shift >= MIN_SHIFT), else None
         self._pairs: Deque[Optional[np.ndarray]] = collections.deque()
         self._residual = np.zeros(len(self.taus))  # sum over the informative pairs in the window
-        self._previous: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (thumbnail, psi per tau)
+        self._previous: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None  # (thumbnail, psi per tau, position)
         self._hanning: Optional[np.ndarray] = None
         self.tau = 0.0
         self.pairs_used = 0
 
-    def add(self, bgr: np.ndarray, bound_stamp: float, history: Tuple[Sequence[float], Sequence[float]]) -> None:
-        """One frame: its image, camera-bound stamp, and the history as (stamps, unwrapped psi) arrays."""
+    def add(self, bgr: np.ndarray, bound_stamp: float, history: Tuple[Sequence[float], Sequence[float]],
+            position: Sequence[float] = (0.0, 0.0)) -> None:
+        """One frame: its image, camera-bound stamp, the history as (stamps, unwrapped psi) arrays, and
+        the robot's odometry position (x, y) at the stamp."""
         stamps, psi = history
         if len(stamps) < 2:
             return
@@ -87,13 +94,14 @@ class LatencyEstimator:
         thumb = thumb.astype(np.float32)
         if self._hanning is None or self._hanning.shape != thumb.shape:
             self._hanning = cv2.createHanningWindow(thumb.shape[::-1], cv2.CV_32F)
+        position = np.asarray(position, dtype=float)
         if self._previous is not None:
-            previous, previous_heading = self._previous
+            previous, previous_heading, previous_position = self._previous
             (dx, _), response = cv2.phaseCorrelate(previous, thumb, self._hanning)
-            if response >= MIN_RESPONSE and math.isfinite(dx):
+            if response >= MIN_RESPONSE and math.isfinite(dx) and np.linalg.norm(position - previous_position) <= MAX_TRAVEL:
                 turn = np.remainder(heading - previous_heading + math.pi, 2.0 * math.pi) - math.pi
                 self._add_pair(float(dx), self.focal * turn)
-        self._previous = (thumb, heading)
+        self._previous = (thumb, heading, position)
 
     def _add_pair(self, dx: float, predicted: np.ndarray) -> None:
         """A frame pair's observed and predicted (per tau) shifts; tau re-chosen over the window."""
@@ -102,7 +110,7 @@ class LatencyEstimator:
             if dropped is not None:
                 self._residual -= dropped
                 self.pairs_used -= 1
-        squared = (dx - predicted) ** 2 if np.abs(predicted).max() >= MIN_SHIFT else None
+        squared = np.minimum((dx - predicted) ** 2, MAX_RESIDUAL**2) if np.abs(predicted).max() >= MIN_SHIFT else None
         self._pairs.append(squared)
         if squared is not None:
             self._residual += squared

@@ -83,7 +83,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Counter, Deque, List, Literal, Optional, Sequence, Set, Tuple, Union
+from typing import Any, Callable, Counter, Deque, Dict, List, Literal, Optional, Sequence, Set, Tuple, Union
 
 import cv2
 import numpy as np
@@ -238,8 +238,8 @@ class NaoqiBackend(RobotBackend):
         focal, width = float(np.asarray(intrinsics.K)[0, 0]), int(intrinsics.width)
         self.latency = LatencyEstimator(params.camera_latency_max, focal, width)  # frames on the camera bound
         self.exposure = LatencyEstimator(params.exposure_offset_max, focal, width, min_latency=-params.exposure_offset_max)  # stamped
-        self._logged_tau = {self.latency: 0.0, self.exposure: 0.0}  # the last tau of each told in the log
-        self._unlearnt: Optional[Tuple[np.ndarray, float]] = None  # the last frame and its stamp, not yet learnt from
+        self._logged_tau: Dict[LatencyEstimator, Optional[float]] = {self.latency: None, self.exposure: None}  # last told in the log
+        self._unlearnt: Optional[Tuple[LatencyEstimator, np.ndarray, float]] = None  # the last frame, its estimator and uncorrected stamp
         self._last_drop_log = -math.inf
         self._walk_commanded = False  # the last walk command was not a stop: "walking" without moveIsActive
         self._motion_lacks: Set[str] = set()  # of OPTIONAL_MOTION, found missing at start
@@ -396,10 +396,10 @@ class NaoqiBackend(RobotBackend):
         stamp = self._capture_stamp(robot_stamp, received)
         bgr = self._to_subscribed_size(image_to_bgr(int(image[0]), int(image[1]), int(image[3]), image[6]))
         # learnt a frame late, when the history holds the instants after its stamp that an exposure may show
-        pending, self._unlearnt = self._unlearnt, (bgr, stamp)
-        if pending is not None:
-            learner = self.latency if self.clock_source == "camera" else self.exposure
-            self._learn_latency(learner, pending[0], pending[1] + learner.tau)  # from the stamp before its correction
+        learner = self.latency if self.clock_source == "camera" else self.exposure
+        pending, self._unlearnt = self._unlearnt, (learner, bgr, stamp + learner.tau)  # the stamp before its correction
+        if pending is not None and pending[0] is learner:
+            self._learn_latency(*pending)
         # a capture newer than the newest sample: wait for the next one, as long as a gap is tolerated
         kin = self.kinematics.wait_at(stamp, self.params.kinematics_max_gap)
         if isinstance(kin, str):
@@ -439,9 +439,12 @@ class NaoqiBackend(RobotBackend):
         if len(samples) < 2:
             return
         stamps = np.array([k.stamp for k in samples])
-        headings = camera_heading(np.array([k.odom[2] for k in samples]), np.array([k.T for k in samples]))
-        learner.add(bgr, stamp, (stamps, np.unwrap(headings)))
-        if abs(learner.tau - self._logged_tau[learner]) >= 0.005:
+        odom = np.array([k.odom for k in samples])
+        headings = camera_heading(odom[:, 2], np.array([k.T for k in samples]))
+        position = [np.interp(stamp, stamps, odom[:, i]) for i in (0, 1)]
+        learner.add(bgr, stamp, (stamps, np.unwrap(headings)), position)
+        told = self._logged_tau[learner]
+        if learner.pairs_used >= learner.min_pairs and (told is None or abs(learner.tau - told) >= 0.005):
             self._logged_tau[learner] = learner.tau
             what = "before the camera bound" if learner is self.latency else "before their NAOqi stamps (the exposure's middle)"
             log.info("NAOqi frames from their images: stamped %.0f ms %s (%d turning pairs)", 1e3 * learner.tau, what,

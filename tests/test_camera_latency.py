@@ -132,7 +132,7 @@ def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
         backend = NaoqiBackend(standin.url, model, params, "qvga", 15.0)
         backend.start()
         started = time.monotonic()
-        while time.monotonic() - started < 20.0 and backend.exposure.pairs_used < backend.exposure.min_pairs:
+        while time.monotonic() - started < 30.0 and backend.exposure.pairs_used < 3 * backend.exposure.min_pairs:
             backend.set_head(0.9 if int(time.monotonic() - started) % 2 == 0 else -0.9, 0.1, 0.5)
             backend.grab_frame(1.0)
         offsets = []
@@ -142,5 +142,6 @@ def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
                 offsets.append(frame.stamp - standin.video.captures[-1][1])  # served: the last capture, stamped at its end
         backend.close()
     assert backend.clock_source == "probe"
-    assert backend.exposure.tau == pytest.approx(0.015, abs=2 * STEP)
-    assert offsets and max(abs(o + 0.015) for o in offsets) < 0.006
+    # within 6 ms: the sampler stamps its readings mid-way through three NAOqi calls, a few ms after the angles
+    assert backend.exposure.tau == pytest.approx(0.015, abs=0.006)
+    assert offsets and max(abs(o + 0.015) for o in offsets) < 0.007
