@@ -13,6 +13,15 @@ signed solid angle at p (Van Oosterom and Strackee 1983) over 4 pi::
 
 w counts the closed components that hold p (0 outside), so ``w >= 1/2`` is exact on the triangles
 themselves: the renderer draws the same triangles, the truth is the same solid.
+
+For a closed mesh (every edge in exactly two faces) w is also the signed count of the triangles a
+vertical ray from p crosses above it: +1 for a face whose outward normal points up (leaving a
+component), -1 for one pointing down (entering it). Many points share a column (x, y) (a voxel
+grid), so ``contains`` intersects each column with every triangle once, by 2-D edge functions
+e_k(q) = (v_{k+1} - v_k) x (q - v_k) of the projected triangle (q inside when all three share the
+sign of the projected area), z by the barycentric weights e_k / area; and counts per point the
+crossings above it: O(columns x faces) instead of O(points x faces), the same answer (a column
+is moved by 1e-9 m so that it never runs exactly along an edge).
 """
 
 from __future__ import annotations
@@ -124,12 +133,48 @@ def winding_numbers(mesh: Mesh, points: np.ndarray, chunk: int = 1 << 22) -> np.
     return out
 
 
+def is_closed(mesh: Mesh) -> bool:
+    """Every edge in exactly two faces."""
+    faces = mesh[1]
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def ray_winding_numbers(mesh: Mesh, points: np.ndarray, chunk: int = 1 << 22) -> np.ndarray:
+    """w of each point of a closed mesh by signed vertical-ray crossings (module docstring)."""
+    vertices, faces = mesh
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])  # 2 x projected, signed
+    upright = area != 0.0  # vertical faces: no crossing
+    a, b, c, area = a[upright], b[upright], c[upright], area[upright]
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    columns, column_of = np.unique(points[:, :2], axis=0, return_inverse=True)
+    q = columns + np.array([1.0e-9, 1.7e-9])  # off every edge
+    out = np.zeros(len(points))
+    step = max(1, chunk // max(len(area), 1))
+    for s in range(0, len(q), step):
+        qs = q[s : s + step, None, :]
+        weights = [((v[None, :, 0] - u[None, :, 0]) * (qs[..., 1] - u[None, :, 1])
+                    - (v[None, :, 1] - u[None, :, 1]) * (qs[..., 0] - u[None, :, 0])) / area for u, v in ((b, c), (c, a), (a, b))]
+        crossed = (weights[0] >= 0.0) & (weights[1] >= 0.0) & (weights[2] >= 0.0)  # weights of a, b, c: inside
+        z = weights[0] * a[:, 2] + weights[1] * b[:, 2] + weights[2] * c[:, 2]
+        sign = np.sign(area)  # projected counter-clockwise: outward normal up
+        for i in range(len(qs)):
+            mine = np.flatnonzero(column_of == s + i)
+            hits = crossed[i]
+            out[mine] = ((z[i, hits][None, :] > points[mine, 2, None]) * sign[hits]).sum(axis=1)
+    return out
+
+
 def contains(mesh: Mesh, points: np.ndarray) -> np.ndarray:
-    """Bool per point: inside the mesh (winding number >= 1/2), tested only inside its bounding box."""
+    """Bool per point: inside the mesh (winding number >= 1/2), tested only inside its bounding box;
+    by vertical rays when the mesh is closed (module docstring)."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     lo, hi = mesh[0].min(axis=0), mesh[0].max(axis=0)
     candidate = np.all((points >= lo) & (points <= hi), axis=1)
     inside = np.zeros(len(points), dtype=bool)
     if candidate.any():
-        inside[candidate] = winding_numbers(mesh, points[candidate]) >= 0.5
+        winding = ray_winding_numbers if is_closed(mesh) else winding_numbers
+        inside[candidate] = winding(mesh, points[candidate]) >= 0.5
     return inside

@@ -173,7 +173,8 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
                     resolution: str) -> Optional[Tuple[float, float]]:
     """(median, maximum) over the carve's keyframes of how far (px) the object's centre at mid-height,
     seen through the logged T_WC and K (the configured one in logs without), lands from where the true camera of that
-    capture sees it: the misalignment the carve suffers. ``poses``: the log's /agent/pose records."""
+    capture sees it at the end of its exposure: the misalignment the carve suffers (with the camera's turn over the
+    part of the exposure after the frame's stamp). ``poses``: the log's /agent/pose records."""
     stamps = {record["seq"]: record["stamp"] for record in poses}
     camera = CameraModel.from_intrinsics(load_robot_model().camera.intrinsics(resolution))
     true_camera = CameraModel.from_intrinsics(spec.robot.camera.intrinsics(resolution))
@@ -187,7 +188,7 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
         if stamp is None or not len(captured):
             continue
         nearest = captured[np.argmin(np.abs(captured - stamp))]
-        if abs(nearest - stamp) > 0.005:
+        if abs(nearest - stamp) > 0.005 + spec.config.noise.shutter:  # a frame is stamped within its exposure (docs/frames.md)
             continue
         logged, _ = keyframe_camera(camera, record).project_world(centre, np.asarray(record["T_WC"], dtype=float).reshape(4, 4))
         true, _ = true_camera.project_world(centre, renders[nearest])
