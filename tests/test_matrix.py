@@ -141,8 +141,8 @@ def test_mean_half_breadth_is_the_radius_of_a_cylinder_and_cauchys_for_a_box():
 
 def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
     r = load_randomizer()
-    specs = [random_world(seed) for seed in range(40)]
-    assert random_world(7) == specs[7]
+    specs = [random_world(seed, r, CONFIG, ROBOT) for seed in range(40)]  # the configuration read once
+    assert random_world(7) == specs[7]  # and read by random_world itself: the same world
     assert {s.layout for s in specs} == set(r.layouts) and {s.object_name for s in specs} == set(r.objects)
     assert 0 < sum(s.bare_naoqi for s in specs) < len(specs)  # some worlds are served by a bare NAOqi, not all
     configured = ROBOT.camera.intrinsics("qvga")
@@ -156,7 +156,7 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
         assert abs(true.fx / configured.fx - 1.0) == pytest.approx(r.focal_error)
         assert abs(true.cx - configured.cx) == pytest.approx(r.principal_error)
         assert r.latency[0] <= s.config.noise.latency[0] <= s.config.noise.latency[1] <= r.latency[1]
-        for name in ("pixel_sigma", "blur_sigma", "exposure"):
+        for name in ("pixel_sigma", "blur_sigma", "exposure", "shutter"):
             low, high = getattr(r, name)
             assert low <= getattr(s.config.noise, name) <= high, name
     world = RandomWorld(specs[0])
