@@ -29,7 +29,8 @@ before anything else happens, whatever the outcome.
 In LOCALIZE the mission keeps the robot still and leaves the head to the caller; in ACTIVE it
 does not choose the motion: ``Decision.walk`` and ``Decision.head`` are None
 and the caller applies the planner's command and the head servo's target (or, while the pose is
-uncertain, ``lookout_std``, alternates it with the best landmark direction: station/pilot.py).
+uncertain, ``lookout_std``, alternates it with the best landmark direction, standing for it after
+``lookout_stand`` s without a fix: station/pilot.py).
 """
 
 from __future__ import annotations
@@ -85,6 +86,7 @@ class MissionParams:
     max_frame_failures: int = field(metadata=bounds(1, 100000))
     gaze_dwell: float = field(metadata=bounds(0.1, 30.0))
     lookout_std: float = field(metadata=bounds(0.001, 10.0))
+    lookout_stand: float = field(metadata=bounds(0.0, 600.0))
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this
@@ -155,6 +157,10 @@ class Mission:
             self._enter(Phase.ACTIVE, t)
         elif self.phase is Phase.SEARCH and object_seen:
             self._enter(Phase.LOCALIZE, t)
+
+    def since_fix(self, t: float) -> float:
+        """Seconds since the last landmark fix (infinite before the first)."""
+        return math.inf if self._t_fix is None else t - self._t_fix
 
     def on_frame_failed(self, t: float, step: str, error: str) -> None:
         """A frame a per-frame step raised on (the caller dropped it)."""

@@ -56,7 +56,9 @@ last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (sl
 gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` from the current pose
 over the head's range (the smallest predicted fix std; the next landmark-scan yaw when no direction
 predicts a fix), clamped to the head limits; even dwells and any tick with sigma_p <= lookout_std
-follow the object. The decision's reason then says ``landmark lookout``. No keyframe is taken while
+follow the object. The decision's reason then says ``landmark lookout``; after ``lookout_stand`` s
+without a fix a lookout dwell stands still (a zero walk), since a walking camera's smeared frames
+show no small marker (docs/frames.md "Exposure"). No keyframe is taken while
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
@@ -279,9 +281,11 @@ class Pilot:
                 self._object_gaze = head
                 decision = Decision(decision.phase, walk=self.command, head=head)
             else:
-                decision = Decision(decision.phase, walk=self.command, head=head, reason=(
-                    f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm "
-                    f"> {self.config.mission.lookout_std * 100:.1f} cm"))
+                p, since = self.config.mission, self.mission.since_fix(t)
+                standing = since > p.lookout_stand  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
+                decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0) if standing else self.command, head=head, reason=(
+                    f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm > {p.lookout_std * 100:.1f} cm"
+                    + (f"; standing: no fix for {since:.1f} s" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
             decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
         if decision.walk is not None and not decision.stop:
