@@ -87,6 +87,7 @@ class MissionParams:
     gaze_dwell: float = field(metadata=bounds(0.1, 30.0))
     lookout_std: float = field(metadata=bounds(0.001, 10.0))
     lookout_stand: float = field(metadata=bounds(0.0, 600.0))
+    lookout_stand_dwell: float = field(metadata=bounds(0.1, 60.0))
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this

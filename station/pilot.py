@@ -56,9 +56,11 @@ last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (sl
 gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` from the current pose
 over the head's range (the smallest predicted fix std; the next landmark-scan yaw when no direction
 predicts a fix), clamped to the head limits; even dwells and any tick with sigma_p <= lookout_std
-follow the object. The decision's reason then says ``landmark lookout``; after ``lookout_stand`` s
-without a fix a lookout dwell stands still (a zero walk), since a walking camera's smeared frames
-show no small marker (docs/frames.md "Exposure"). No keyframe is taken while
+follow the object. The decision's reason then says ``landmark lookout``. After ``lookout_stand`` s
+without a fix the lookouts stand still (a zero walk), since a walking camera's smeared frames show
+no small marker (docs/frames.md "Exposure"), and last ``lookout_stand_dwell`` s each, from then
+on, with a ``gaze_dwell`` on the object between them, so that the head gets there and settles. No
+keyframe is taken while
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
@@ -221,7 +223,7 @@ class Pilot:
         self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
-        self._lookout: Optional[Tuple[int, Tuple[float, float]]] = None  # (dwell slot, head target) while looking away
+        self._lookout: Optional[Tuple[Tuple[bool, int], Tuple[float, float]]] = None  # ((standing, slot), head target) while looking away
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
         self._t_back: Optional[float] = None  # when the head was last sent back to the object after a lookout
         self._handlers: Dict[Type, Callable[..., Step]] = {
@@ -506,15 +508,21 @@ class Pilot:
         """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""
         p = self.config.mission
         pose = self.localizer.pose
-        slot = int(t // p.gaze_dwell)
-        if pose is None or not self.localizer.position_std() > p.lookout_std or slot % 2 == 0:
+        drought = self.mission.since_fix(t) - p.lookout_stand
+        if drought > 0.0:  # standing lookouts from then on, first: long enough for the head to get there and settle
+            period, phase = divmod(drought, p.lookout_stand_dwell + p.gaze_dwell)
+            slot, looking = (True, int(period)), phase < p.lookout_stand_dwell
+        else:
+            period = int(t // p.gaze_dwell)
+            slot, looking = (False, period), period % 2 == 1
+        if pose is None or not self.localizer.position_std() > p.lookout_std or not looking:
             if self._lookout is not None:
                 self._lookout, self._t_back = None, t
             return None
         if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
             view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, self._directions)
-            yaw, pitch = (view.yaw, view.pitch) if view else (p.search_head_yaws[(slot // 2) % len(p.search_head_yaws)], p.init_pitch)
-            self._lookout = (slot, self.robot.head.clamp(yaw, pitch))
+            scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
+            self._lookout = (slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
         return self._lookout[1]
 
     def _gaze_on_object(self, t: float, head: Tuple[float, float]) -> bool:
