@@ -57,7 +57,8 @@ gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` f
 over the head's range (the smallest predicted fix std; the next landmark-scan yaw when no direction
 predicts a fix), clamped to the head limits; even dwells and any tick with sigma_p <= lookout_std
 follow the object. The decision's reason then says ``landmark lookout``. After ``lookout_stand`` s
-without a fix the lookouts stand still (a zero walk), since a walking camera's smeared frames show
+without a fix, whatever sigma_p (the mission ends after ``landmarks_lost_timeout`` without one),
+the lookouts stand still (a zero walk), since a walking camera's smeared frames show
 no small marker (docs/frames.md "Exposure"), and last ``lookout_stand_dwell`` s each, from then
 on, with a ``gaze_dwell`` on the object between them, so that the head gets there and settles. No
 keyframe is taken while
@@ -286,7 +287,7 @@ class Pilot:
                 p, since = self.config.mission, self.mission.since_fix(t)
                 standing = since > p.lookout_stand  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
                 decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0) if standing else self.command, head=head, reason=(
-                    f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm > {p.lookout_std * 100:.1f} cm"
+                    f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
                     + (f"; standing: no fix for {since:.1f} s" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
             decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
@@ -515,7 +516,8 @@ class Pilot:
         else:
             period = int(t // p.gaze_dwell)
             slot, looking = (False, period), period % 2 == 1
-        if pose is None or not self.localizer.position_std() > p.lookout_std or not looking:
+        uncertain = self.localizer.position_std() > p.lookout_std or drought > 0.0  # a drought ends the mission in the end
+        if pose is None or not uncertain or not looking:
             if self._lookout is not None:
                 self._lookout, self._t_back = None, t
             return None

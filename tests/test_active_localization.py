@@ -151,3 +151,15 @@ def test_a_lookout_long_without_a_fix_stands_still_and_the_object_dwell_walks_on
     assert on_object.walk != (0.0, 0.0, 0.0) and not on_object.reason
     assert away.walk == (0.0, 0.0, 0.0) and "landmark lookout" in away.reason and "standing: no fix for" in away.reason
     assert again.walk == (0.0, 0.0, 0.0) and "standing" in again.reason
+
+
+def test_a_fix_drought_sends_the_head_to_the_landmarks_even_when_odometry_keeps_the_pose_certain(monkeypatch):
+    """The mission ends after ``landmarks_lost_timeout`` without a fix whatever the pose's std, so
+    a drought of ``lookout_stand`` s looks for landmarks, standing, though the std stays small."""
+    pilot, _ = active_pilot(monkeypatch)  # its fix at 0.1 s, standing still: the std stays put
+    assert pilot.localizer.position_std() <= CONFIG.mission.lookout_std
+    t = 0.1 + CONFIG.mission.lookout_stand + 0.5
+    pilot.mission.on_frame(t, True, False, True)  # the object seen, no fix
+    decision = pilot.handle(Tick(t)).decision
+    assert decision.walk == (0.0, 0.0, 0.0) and "standing: no fix for" in decision.reason
+    assert decision.head != object_head(pilot)
