@@ -59,9 +59,9 @@ predicts a fix), clamped to the head limits; even dwells and any tick with sigma
 follow the object. The decision's reason then says ``landmark lookout``. After ``lookout_stand`` s
 without a fix, whatever sigma_p (the mission ends after ``landmarks_lost_timeout`` without one),
 the lookouts stand still (a zero walk), since a walking camera's smeared frames show
-no small marker (docs/frames.md "Exposure"), and last ``lookout_stand_dwell`` s each, from then
-on, with a ``gaze_dwell`` on the object between them, so that the head gets there and settles. No
-keyframe is taken while
+no small marker (docs/frames.md "Exposure"), and alternate from then on with the object, the
+lookout first, ``lookout_stand_dwell`` s each, so that the head gets there and settles (and back:
+the mission ends when the object is unseen for ``object_lost_timeout``). No keyframe is taken while
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
@@ -510,8 +510,8 @@ class Pilot:
         p = self.config.mission
         pose = self.localizer.pose
         drought = self.mission.since_fix(t) - p.lookout_stand
-        if drought > 0.0:  # standing lookouts from then on, first: long enough for the head to get there and settle
-            period, phase = divmod(drought, p.lookout_stand_dwell + p.gaze_dwell)
+        if drought > 0.0:  # standing lookouts from then on, first; each half long enough for the head to get there and settle
+            period, phase = divmod(drought, 2.0 * p.lookout_stand_dwell)
             slot, looking = (True, int(period)), phase < p.lookout_stand_dwell
         else:
             period = int(t // p.gaze_dwell)

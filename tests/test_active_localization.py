@@ -132,8 +132,8 @@ def test_a_certain_pose_never_looks_away(monkeypatch):
 
 def test_a_lookout_long_without_a_fix_stands_still_and_the_object_dwell_walks_on(monkeypatch):
     """Frames smeared by walking show no small marker: once no fix came for ``lookout_stand`` s, the
-    lookouts stand (a zero walk) and say so, the first at once, each ``lookout_stand_dwell`` long,
-    a ``gaze_dwell`` on the object between them with the planner's walk."""
+    lookouts stand (a zero walk) and say so, the first at once, alternating with the object (and the
+    planner's walk), ``lookout_stand_dwell`` each."""
     pilot, _ = active_pilot(monkeypatch)
     t = walk_until_uncertain(pilot, 0.2)  # its last fix at t
     pilot.command = (0.05, 0.0, 0.1)  # what the planner asks for
@@ -144,9 +144,10 @@ def test_a_lookout_long_without_a_fix_stands_still_and_the_object_dwell_walks_on
     long_dwell = CONFIG.mission.lookout_stand_dwell
     pilot.mission.on_frame(standing, True, False, True)  # the object seen since, no fix
     away = pilot.handle(Tick(standing + 0.6 * long_dwell)).decision  # past a plain dwell
-    on_object = pilot.handle(Tick(standing + long_dwell + 0.5 * DWELL)).decision
-    again = pilot.handle(Tick(standing + long_dwell + DWELL + 0.1)).decision
-    assert standing + long_dwell + DWELL - t < CONFIG.mission.landmarks_lost_timeout  # a second look before the mission gives up
+    on_object = pilot.handle(Tick(standing + 1.9 * long_dwell)).decision  # past a plain dwell
+    again = pilot.handle(Tick(standing + 2 * long_dwell + 0.1)).decision
+    assert standing + 2.5 * long_dwell - t < CONFIG.mission.landmarks_lost_timeout  # a second look before the mission gives up
+    assert 2 * long_dwell < CONFIG.mission.object_lost_timeout  # a look and the head's way back before the object is lost
     assert "landmark lookout" in early.reason and "standing" not in early.reason and early.walk != (0.0, 0.0, 0.0)
     assert on_object.walk != (0.0, 0.0, 0.0) and not on_object.reason
     assert away.walk == (0.0, 0.0, 0.0) and "landmark lookout" in away.reason and "standing: no fix for" in away.reason
