@@ -51,6 +51,8 @@ class StationParams:
     keyframe_min_angle: float = field(metadata=bounds(0.0, 3.2))
     carve_max_position_std: float = field(metadata=bounds(1e-4, 10.0))
     doctor_min_battery: float = field(metadata=bounds(0.0, 1.0))
+    stamp_sigma: float = field(metadata=bounds(0.0, 1.0))  # s, a frame stamp's error the object filter allows for
+    start_max_turn_rate: float = field(metadata=bounds(0.0, 100.0))  # rad/s, the object filter starts only from a slower camera
 
 
 SECTIONS: Dict[str, type] = {

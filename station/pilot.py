@@ -19,7 +19,13 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
                    the image gives (agent/clearance.py)
     filter:        EKF predict(s - s_prev), then update(cam, phi, delta, C_cam), or initialize, with
-                   C_cam = J P_t J^T from the localizer's total_covariance P_t (agent/ekf.py);
+                   C_cam = J P_t J^T + diag(0, 0, (w sigma_s)^2) from the localizer's total_covariance P_t
+                   (agent/ekf.py) and the camera's turn rate w in O since the last frame: a frame's
+                   stamp is off by ``stamp_sigma`` (an exposure's offset, a latency not yet learnt:
+                   docs/frames.md), which turns the camera's heading by w times it; the filter starts
+                   only from a camera turning slower than ``start_max_turn_rate`` (a bare NAOqi's
+                   frames, late by 0.14 s before its latency was learnt, started matrix world 0's
+                   filter 0.1 rad off from a head turning at 0.6 rad/s, and it gated every good view after);
                    none once the mission has decided (DONE, STOPPING: the same view again and again
                    while the robot stops must not move, let alone re-initialize, the estimate decided on)
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
@@ -105,7 +111,7 @@ from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import image_distance
 from agent.keep_in import KeepIn
 from agent.coverage import Coverage, seen_fraction
-from agent.ekf import ObjectEKF
+from agent.ekf import ObjectEKF, UpdateResult
 from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
@@ -135,6 +141,7 @@ from station.outputs import (
 
 Cam = Tuple[float, float, float]
 VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
+TURN_RATE_GAP = 0.5  # s: frames further apart than this give no camera turn rate
 
 
 @dataclass(frozen=True)
@@ -209,7 +216,8 @@ class Pilot:
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.dropped: Counter = Counter()  # frames dropped, by the step that raised
-        self._views: Deque[Tuple[float, Cam, float, Optional[float]]] = deque(maxlen=VIEWS_KEPT)  # (stamp, cam, phi, delta) in O
+        self._views: Deque[Tuple[float, Cam, float, Optional[float], Optional[float]]] = deque(maxlen=VIEWS_KEPT)  # (stamp, cam, phi, delta, turn rate) in O
+        self._last_camera: Optional[Tuple[float, float]] = None  # (stamp, camera heading in O) of the last frame
         self.relocalized = 0  # filters rebuilt after a fix moved the pose by more than relocalize_shift
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
@@ -329,6 +337,7 @@ class Pilot:
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
             T_OC = camera_in_world(tuple(float(v) for v in meta.odom), T_BC)
             cam_odom = (float(T_OC[0, 3]), float(T_OC[1, 3]), optical_axis_heading(T_OC))
+            turn_rate = self._turn_rate(meta.stamp, cam_odom[2])
         with guarded("calibration"):
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
             self.standstill.on_head(t, meta.head_yaw, meta.head_pitch)
@@ -361,7 +370,8 @@ class Pilot:
                         self._near = near  # a bottom-cut view (an upper bound) never replaces a nearer point
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
-                self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam))
+                self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam),
+                             turn_rate)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
@@ -383,18 +393,36 @@ class Pilot:
         J = np.array([[1.0, 0.0, self.pose[1] - cam[1]], [0.0, 1.0, cam[0] - self.pose[0]], [0.0, 0.0, 1.0]])
         return J @ P @ J.T
 
+    def _turn_rate(self, stamp: float, heading: float) -> Optional[float]:
+        """rad/s: how fast the camera's heading turned in O since the last frame; None for the first or
+        after ``TURN_RATE_GAP`` s."""
+        last, self._last_camera = self._last_camera, (stamp, heading)
+        if last is None or not 0.0 < stamp - last[0] <= TURN_RATE_GAP:
+            return None
+        return abs(wrap_angle(heading - last[1])) / (stamp - last[0])
+
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
-                cam_cov: Optional[np.ndarray]) -> None:
-        self._views.append((stamp, cam_odom, phi, delta))
-        result = self._observe(stamp, cam, phi, delta, cam_cov)
+                cam_cov: Optional[np.ndarray], turn_rate: Optional[float]) -> None:
+        self._views.append((stamp, cam_odom, phi, delta, turn_rate))
+        result = self._observe(stamp, cam, phi, delta, turn_rate, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
         step.outputs.append(self._ekf_record(t))
 
-    def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], cam_cov: Optional[np.ndarray] = None):
+    def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], turn_rate: Optional[float],
+                 cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+        """Update the filter, or start it (from a camera known to turn slowly); the camera's turn over the
+        stamp's error widens its heading's variance (module docstring)."""
+        c = self.config.station
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            result = self.ekf.update(cam, phi, delta, cam_cov)
+            turn = np.diag([0.0, 0.0, ((turn_rate or 0.0) * c.stamp_sigma) ** 2])
+            result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn)
+        elif turn_rate is None:
+            return UpdateResult(False, None, 0, None, "no start from a camera whose turn is not known yet")
+        elif turn_rate > c.start_max_turn_rate:
+            return UpdateResult(False, None, 0, None, f"no start from a camera turning at {turn_rate:.2f} rad/s "
+                                                      f"(above {c.start_max_turn_rate:g})")
         else:
             result = self.ekf.initialize(cam, phi, delta)
         self._last_capture = stamp
@@ -420,9 +448,9 @@ class Pilot:
         self._last_capture = None
         if relocated:
             self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
-        for stamp, (cx, cy, psi), phi, delta in self._views:
+        for stamp, (cx, cy, psi), phi, delta, turn_rate in self._views:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, phi, delta)  # phi is measured from psi: a rigid move leaves it
+            self._observe(stamp, cam, phi, delta, turn_rate)  # phi is measured from psi: a rigid move leaves it
             if relocated:
                 self.coverage.add(np.asarray(cam))
 

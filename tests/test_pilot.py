@@ -23,7 +23,7 @@ from nao_sim.world import SimWorld
 from station.config import load_station_config
 from station.events import FrameReceived, Replan, StateReceived, Tick
 from station.mcap_log import McapLog, read_log
-from station.outputs import OUTPUTS, FrameRejectedRecord
+from station.outputs import OUTPUTS, FrameRejectedRecord, MeasurementRecord
 from station import pilot as pilot_module
 from station.pilot import Pilot
 from station.result import build_result, write_result
@@ -266,7 +266,8 @@ def test_a_late_first_fix_re_anchors_the_object_estimate_onto_the_truth(monkeypa
         return real(*args)
 
     monkeypatch.setattr(pilot.localizer, "measure", late)
-    world.walk(0.0, 0.0, 0.25)  # turning in place: the kept measurements come from different odometry poses
+    # turning in place, slower than a filter may start from: the kept measurements come from different odometry poses
+    world.walk(0.0, 0.0, 0.8 * CONFIG.station.start_max_turn_rate)
     seen = []  # (odometry, true pose) of the frames at capture
     while not pilot.anchored:
         now[0] += 0.15
@@ -454,3 +455,25 @@ def test_a_view_s_camera_covariance_is_the_pose_s_through_the_camera_s_lever_arm
     assert across @ C[:2, :2] @ across == pytest.approx((0.05 * 0.01) ** 2)
     assert along @ C[:2, :2] @ along == pytest.approx(0.0, abs=1e-15)
     assert C[2, 2] == pytest.approx(0.01**2)
+
+
+def test_the_object_filter_starts_only_from_a_camera_turning_slowly():
+    """A frame's stamp may be off by tens of ms (docs/frames.md), which a turning camera turns into a
+    bearing error: the object seen while the head sweeps at 0.6 rad/s starts no filter (the records
+    say why); the first view once the head has stopped does."""
+    now = [0.0]
+    world = SimWorld("can", MODEL, "qvga", seed=1, clock=lambda: now[0])
+    world.teleport(world.start_pose, head=(-0.2, CONFIG.mission.init_pitch))
+    pilot = Pilot(NO_STANDSTILL, INFO)
+    world.set_head(0.2, CONFIG.mission.init_pitch, 0.6 / MODEL.head.max_speed)  # 0.6 rad/s
+    reasons = []
+    for seq in range(1, 12):
+        now[0] += 0.1
+        shot = world.render()
+        step = pilot.handle(FrameReceived(now[0], frame(seq, jpeg(shot.image), shot.T_BC.ravel(), shot.odom, shot.stamp)))
+        turning = abs(world.head_angles()[0] - 0.2) > 1e-6
+        reasons += [o.reason for o in step.outputs if isinstance(o, MeasurementRecord)]
+        assert not (turning and pilot.ekf.initialized)  # the first frame neither: its turn is not known yet
+    assert any(r.startswith("no start from a camera turning at 0.6") for r in reasons), reasons
+    assert reasons[0].startswith("no start from a camera whose turn is not known yet"), reasons
+    assert pilot.ekf.initialized and reasons[-1] == "ok"
