@@ -20,7 +20,9 @@ Phases and transitions (t is the caller's clock, s; the first ``tick`` starts th
     STOPPING --a state received after the stop says not walking, or stop_timeout--> FINISHED
 
 Abort rules in LOCALIZE and ACTIVE: the object unseen for ``object_lost_timeout`` s
-('object_lost'); in ACTIVE, no landmark fix for ``landmarks_lost_timeout`` s ('landmarks_lost').
+('object_lost'); in ACTIVE, no landmark fix for ``landmarks_lost_timeout`` s, or the pose's position
+std (odometry since the last fix, reported with each frame) above ``landmarks_lost_std``
+('landmarks_lost').
 In any phase before DONE, ``max_frame_failures`` frames in a row that a per-frame step failed on
 end the mission ('frame_failures'; the reason names the step and its last error). The first outcome wins; later
 events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
@@ -82,6 +84,7 @@ class MissionParams:
     search_max_turns: float = field(metadata=bounds(0.0, 10.0))
     object_lost_timeout: float = field(metadata=bounds(0.1, 600.0))
     landmarks_lost_timeout: float = field(metadata=bounds(0.1, 600.0))
+    landmarks_lost_std: float = field(metadata=bounds(0.001, 10.0))
     no_fix_timeout: float = field(metadata=bounds(0.1, 3600.0))
     max_frame_failures: int = field(metadata=bounds(1, 100000))
     gaze_dwell: float = field(metadata=bounds(0.1, 30.0))
@@ -130,6 +133,7 @@ class Mission:
         self._t_state = -math.inf
         self._t_object: Optional[float] = None
         self._t_fix: Optional[float] = None
+        self._position_std = 0.0  # m, the pose's, as the last frame reported it
         self._scan = 0  # index of the head scan's current yaw
         self._t_target: Optional[float] = None  # when the head was sent to it
         self._t_arrived: Optional[float] = None  # when the head got there (its dwell starts)
@@ -145,10 +149,12 @@ class Mission:
         if fallen:
             self._end(t, Outcome.FALLEN, "the robot fell")
 
-    def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool, landmarks_seen: bool = False) -> None:
+    def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool, landmarks_seen: bool = False,
+                 position_std: float = 0.0) -> None:
         """One processed frame: was the object measured, did landmarks fix the pose, is a pose
-        known, were landmarks detected at all."""
+        known, were landmarks detected at all, and how much the pose is worth (m)."""
         self.frame_failures = 0
+        self._position_std = position_std
         self.landmark_frames += landmarks_seen or landmark_fix
         if object_seen:
             self._t_object = t
@@ -211,6 +217,9 @@ class Mission:
                 self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s")
             elif self._t_fix is None or t - self._t_fix > p.landmarks_lost_timeout:
                 self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s")
+            elif self._position_std > p.landmarks_lost_std:
+                self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {t - self._t_fix:.1f} s: the pose's std "
+                                                     f"{100 * self._position_std:.1f} cm passed {100 * p.landmarks_lost_std:g} cm")
             else:
                 return Decision(self.phase)
         if self.phase is Phase.DONE:

@@ -380,7 +380,8 @@ class Pilot:
                 self.coverage.add(np.asarray(cam))
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
-        self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0)
+        self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
+                              self.localizer.position_std() if self.anchored else 0.0)
 
     def _camera_covariance(self, cam: Cam) -> Optional[np.ndarray]:
         """Covariance of (cx, cy, psi) from the localizer's pose covariance at this capture (with the

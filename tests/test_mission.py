@@ -249,6 +249,19 @@ def test_landmarks_lost_after_timeout():
     assert d.outcome is Outcome.LANDMARKS_LOST
 
 
+def test_landmarks_lost_sooner_when_the_pose_is_worth_too_little():
+    """Without a fix, the pose's std reported with each frame ends the mission once it passes
+    ``landmarks_lost_std``, before the timeout; below it the mission goes on."""
+    mission, t = active_mission()
+    std = lambda value: lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False, localized=True,  # noqa: E731
+                                               position_std=value)
+    t, d = run_until(mission, 0.3, 1.0, on_tick=std(0.9 * P.landmarks_lost_std))
+    assert d.phase is Phase.ACTIVE
+    t, d = run_until(mission, t, t + 0.3, on_tick=std(1.1 * P.landmarks_lost_std))
+    assert d.outcome is Outcome.LANDMARKS_LOST and t < 0.2 + P.landmarks_lost_timeout
+    assert "the pose's std" in d.reason and f"passed {100 * P.landmarks_lost_std:g} cm" in d.reason
+
+
 def test_time_limit_ends_as_done_not_abort():
     mission, t = active_mission()
     t, d = run_until(mission, 0.3, P.max_duration + 0.05, on_tick=keep_seeing)
