@@ -67,7 +67,10 @@ without a fix, whatever sigma_p (the mission ends after ``landmarks_lost_timeout
 the lookouts stand still (a zero walk), since a walking camera's smeared frames show
 no small marker (docs/frames.md "Exposure"), and alternate from then on with the object, the
 lookout first, ``lookout_stand_dwell`` s each, so that the head gets there and settles (and back:
-the mission ends when the object is unseen for ``object_lost_timeout``). No keyframe is taken while
+the mission ends when the object is unseen for ``object_lost_timeout``); a standing look that gave
+no fix rules out the directions within ``FRUITLESS_RADIUS`` of it until the next fix (the
+prediction was wrong there: the view of matrix world 0 chosen three times in a row gave none). No
+keyframe is taken while
 looking away, nor after it until a frame's head at capture is within ``head_tolerance`` of the
 object target or ``lookout_settle`` s have passed. Whatever the phase, a walk command that approaches the
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
@@ -142,6 +145,7 @@ from station.outputs import (
 Cam = Tuple[float, float, float]
 VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
 TURN_RATE_GAP = 0.5  # s: frames further apart than this give no camera turn rate
+FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
 
 
 @dataclass(frozen=True)
@@ -233,6 +237,7 @@ class Pilot:
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._lookout: Optional[Tuple[Tuple[bool, int], Tuple[float, float]]] = None  # ((standing, slot), head target) while looking away
+        self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
         self._t_back: Optional[float] = None  # when the head was last sent back to the object after a lookout
         self._handlers: Dict[Type, Callable[..., Step]] = {
@@ -546,12 +551,18 @@ class Pilot:
             period = int(t // p.gaze_dwell)
             slot, looking = (False, period), period % 2 == 1
         uncertain = self.localizer.position_std() > p.lookout_std or drought > 0.0  # a drought ends the mission in the end
+        if drought <= 0.0:
+            self._fruitless.clear()
         if pose is None or not uncertain or not looking:
             if self._lookout is not None:
+                if self._lookout[0][0] and drought > 0.0:  # a standing look that gave no fix: look elsewhere next
+                    self._fruitless.append(self._lookout[1])
                 self._lookout, self._t_back = None, t
             return None
         if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
-            view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, self._directions)
+            directions = [d for d in self._directions if all(max(abs(d[0] - f[0]), abs(d[1] - f[1])) > FRUITLESS_RADIUS
+                                                             for f in self._fruitless)]
+            view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
             scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
             self._lookout = (slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
         return self._lookout[1]

@@ -164,3 +164,23 @@ def test_a_fix_drought_sends_the_head_to_the_landmarks_even_when_odometry_keeps_
     decision = pilot.handle(Tick(t)).decision
     assert decision.walk == (0.0, 0.0, 0.0) and "standing: no fix for" in decision.reason
     assert decision.head != object_head(pilot)
+
+
+def test_a_standing_look_without_a_fix_is_not_repeated_until_a_fix(monkeypatch):
+    """The predicted best view gave no fix standing: the next standing look goes elsewhere (no
+    direction within FRUITLESS_RADIUS of it), and a fix makes every direction eligible again."""
+    from station.pilot import FRUITLESS_RADIUS
+
+    pilot, fixes = active_pilot(monkeypatch)
+    long_dwell = CONFIG.mission.lookout_stand_dwell
+    standing = 0.1 + CONFIG.mission.lookout_stand
+    first = pilot.handle(Tick(standing + 0.5)).decision.head
+    pilot.mission.on_frame(standing + long_dwell, True, False, True)
+    pilot.handle(Tick(standing + long_dwell + 0.5))  # back on the object: that look gave nothing
+    second = pilot.handle(Tick(standing + 2 * long_dwell + 0.5)).decision.head
+    assert max(abs(second[0] - first[0]), abs(second[1] - first[1])) > FRUITLESS_RADIUS - 1e-9, (first, second)
+    fixes.pending = 1
+    t = standing + 2 * long_dwell + 1.0
+    pilot.handle(FrameReceived(t, frame(9, t, (0.0, 0.0, 0.0), head=second)))  # a fix: the drought ends
+    pilot.handle(Tick(t + 0.1))
+    assert pilot.mission.since_fix(t) == 0.0 and not pilot._fruitless
