@@ -2,7 +2,7 @@
 
 For each seed, ``nao_sim.randomize.random_world(seed)`` draws a world (layout, object, start,
 walking errors, sway, camera calibration error, frame latency, drops, clock offset, a bare NAOqi
-for a quarter, sensor noise, blur and brightness); the world is served by the NAOqi stand-in
+for a quarter, sensor noise, blur, brightness and shutter); the world is served by the NAOqi stand-in
 (``nao_sim.standin.StandIn``) in this process over libqi, and ``station start --naoqi`` runs the
 mission against it as a separate process (its bridge drives the stand-in with YUV422 frames, RGB
 from a bare one), with the layout as its landmark map and the configured (not the true) camera.
@@ -381,7 +381,8 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         f"rolled up to {math.degrees(drawn.mount_error[0]):.1f} deg and pitched up to {math.degrees(drawn.mount_error[1]):.1f} deg on its mount "
         "(unreported), and a sensor "
         f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
-        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness. Errors over completed missions (centre: the result's, the carved model's "
+        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness, its shutter open {1e3 * drawn.shutter[0]:g}-{1e3 * drawn.shutter[1]:g} ms "
+        "(motion blur). Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
         "origin to the object's outline), the wall distance the least from it to the room's walls; focal error: the camera the mission ended with against the world's, "
         "self-calibrated or configured; tilt error: the larger of the learnt camera roll's and pitch's on its mount against the world's "
