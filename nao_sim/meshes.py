@@ -151,6 +151,9 @@ def ray_winding_numbers(mesh: Mesh, points: np.ndarray, chunk: int = 1 << 22) ->
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     columns, column_of = np.unique(points[:, :2], axis=0, return_inverse=True)
     q = columns + np.array([1.0e-9, 1.7e-9])  # off every edge
+    order = np.argsort(column_of.ravel(), kind="stable")  # the points of column j: order[first[j]:first[j + 1]]
+    first = np.searchsorted(column_of.ravel()[order], np.arange(len(columns) + 1))
+    sign = np.sign(area)  # projected counter-clockwise: outward normal up
     out = np.zeros(len(points))
     step = max(1, chunk // max(len(area), 1))
     for s in range(0, len(q), step):
@@ -159,9 +162,8 @@ def ray_winding_numbers(mesh: Mesh, points: np.ndarray, chunk: int = 1 << 22) ->
                     - (v[None, :, 1] - u[None, :, 1]) * (qs[..., 0] - u[None, :, 0])) / area for u, v in ((b, c), (c, a), (a, b))]
         crossed = (weights[0] >= 0.0) & (weights[1] >= 0.0) & (weights[2] >= 0.0)  # weights of a, b, c: inside
         z = weights[0] * a[:, 2] + weights[1] * b[:, 2] + weights[2] * c[:, 2]
-        sign = np.sign(area)  # projected counter-clockwise: outward normal up
         for i in range(len(qs)):
-            mine = np.flatnonzero(column_of == s + i)
+            mine = order[first[s + i]:first[s + i + 1]]
             hits = crossed[i]
             out[mine] = ((z[i, hits][None, :] > points[mine, 2, None]) * sign[hits]).sum(axis=1)
     return out

@@ -297,11 +297,11 @@ class Pilot:
                 self._object_gaze = head
                 decision = Decision(decision.phase, walk=self.command, head=head)
             else:
-                p, since = self.config.mission, self.mission.since_fix(t)
-                standing = since > p.lookout_stand  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
+                p = self.config.mission
+                standing = self._drought(t) > 0.0  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
                 decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0) if standing else self.command, head=head, reason=(
                     f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
-                    + (f"; standing: no fix for {since:.1f} s" if standing else "")))
+                    + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
             decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
         if decision.walk is not None and not decision.stop:
@@ -539,11 +539,15 @@ class Pilot:
             return True
         return start and self.ekf.initialized and self.standstill.due(t) and self.standstill.begin(t, self._views_to_calibrate())
 
+    def _drought(self, t: float) -> float:
+        """s past ``lookout_stand`` without a fix: positive while the lookouts stand (module docstring)."""
+        return self.mission.since_fix(t) - self.config.mission.lookout_stand
+
     def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
         """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""
         p = self.config.mission
         pose = self.localizer.pose
-        drought = self.mission.since_fix(t) - p.lookout_stand
+        drought = self._drought(t)
         if drought > 0.0:  # standing lookouts from then on, first; each half long enough for the head to get there and settle
             period, phase = divmod(drought, 2.0 * p.lookout_stand_dwell)
             slot, looking = (True, int(period)), phase < p.lookout_stand_dwell
