@@ -49,3 +49,17 @@ def middlebury_temple() -> Path:
         pytest.fail(f"data set missing: Middlebury templeSparseRing not found; looked in {looked} "
                     "(set NAO_RECON_SHARED to the folder holding data/middlebury)", pytrace=False)
     return MIDDLEBURY_TEMPLE
+
+
+CI_SEED = 23  # the default suite's whole mission (tests/test_matrix.py names its world)
+
+
+@pytest.fixture(scope="session")
+def ci_mission(tmp_path_factory):
+    """The default suite's one whole mission, run once: matrix world ``CI_SEED`` through the NAOqi
+    stand-in (tools.matrix.run_mission). tests/test_matrix.py checks its outcome and accuracy;
+    tests/test_station_mission.py replays and re-carves its log."""
+    from tools.matrix import run_mission
+
+    return run_mission(CI_SEED, tmp_path_factory.mktemp(f"matrix{CI_SEED}"))
+

@@ -1,20 +1,23 @@
-"""Whole missions with real processes, real Zenoh and real MCAP on loopback, at QVGA.
+"""Whole missions with real processes, real Zenoh and real MCAP on loopback.
 
-* The mock-robot mission: `nao-bridge --sim` and `station start` as two processes; the mission
-  completes, centre within 1 cm and radius within a quarter of the radius of the simulator's truth,
-  model IoU >= 0.5, coverage >= 90 %, never nearer than 0.35 m to the can, standing still soon after
-  the final decision; the log reads without warnings, `station replay` reproduces every decision,
-  `station carve` gives a watertight mesh that contains the can and is carved around it.
-* The same mission through the NAOqi stand-in (`nao_sim.standin` over libqi, `station start --naoqi`,
-  via tools.matrix.run_mission) with the same assertions; randomized worlds: tests/test_matrix.py.
+* The default suite's mission (tests/conftest.py ``ci_mission``: matrix world 23 through the NAOqi
+  stand-in over libqi, ``station start --naoqi``; its outcome and accuracy: tests/test_matrix.py):
+  the log reads without warnings and ends with the robot stopped, ``station replay`` reproduces
+  every decision (and reports a tampered one), ``station carve`` gives a watertight mesh that holds
+  the object and is carved around it.
+* The mock-robot mission (slow, ``make test-slow``): ``nao-bridge --sim`` and ``station start`` as
+  two processes at QVGA in the configured room; the mission completes, centre within 1 cm and radius
+  within a quarter of the radius of the simulator's truth, model IoU >= 0.5, coverage >= 90 %, never
+  nearer than 0.35 m to the can, standing still soon after the final decision. CI's wheel check
+  (.ci/wheel-mission) runs ``--sim`` missions from the installed wheel.
 * Every failure outcome: the bridge runs in this process (so the test can make the robot fall,
   hide the object or the landmarks), the station is a separate process; the robot ends stopped,
   the log is readable, result.json says why, the exit code says failure.
 * Ctrl-C (SIGINT) and SIGTERM mid-mission; the bridge process killed mid-mission.
 
-The default suite runs the two full missions, a fall, SIGTERM and the bridge killed; the other
-outcomes (object lost, landmarks lost, object not found, SIGINT, the station killed) are marked
-slow (``make test-slow``) to keep the project suite under 10 minutes.
+The default suite runs one whole mission, a fall, SIGTERM and the bridge killed; the other
+outcomes (object lost, landmarks lost, object not found, SIGINT, the station killed) and the
+mock-robot mission are marked slow (``make test-slow``) to keep the project suite under 10 minutes.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import LandmarkMap
 from nao_core.protocol import State, Truth, WalkCommand, decode
 from nao_core.robot_model import load_robot_model
-from nao_sim.randomize import fixed_world
+from nao_sim.randomize import fixed_world, random_world
 from nao_sim.render import Renderer
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
@@ -117,6 +120,7 @@ def sim_mission(tmp_path_factory):
     return out / "run", proc.returncode, (out / "station.err").read_text()
 
 
+@pytest.mark.slow  # the default suite's mission is tests/conftest.py's ci_mission
 def test_sim_mission_completes_precisely(sim_mission):
     run, code, err = sim_mission
     result = json.loads((run / "result.json").read_text())
@@ -135,6 +139,7 @@ def test_sim_mission_completes_precisely(sim_mission):
         assert (run / name).stat().st_size > 0, name
 
 
+@pytest.mark.slow
 def test_sim_mission_kept_its_distance_and_stopped_soon_after_deciding(sim_mission):
     run, _, _ = sim_mission
     messages = read_clean(run / "run.mcap")
@@ -150,22 +155,28 @@ def test_sim_mission_kept_its_distance_and_stopped_soon_after_deciding(sim_missi
 
 
 @pytest.fixture(scope="module")
-def sim_replay(sim_mission) -> Tuple[subprocess.CompletedProcess, dict]:
+def ci_run(ci_mission) -> Path:
+    """The run folder of the default suite's mission (tests/conftest.py)."""
+    return Path(ci_mission.out) / "run"
+
+
+@pytest.fixture(scope="module")
+def ci_replay(ci_run) -> Tuple[subprocess.CompletedProcess, dict]:
     """``station replay`` of the mission's log, run once: the process and its JSON report."""
-    run, _, _ = sim_mission
+    run = ci_run
     replayed = subprocess.run([PY, "-m", "station.cli", "replay", str(run / "run.mcap")], capture_output=True, text=True, timeout=300)
     return replayed, json.loads(replayed.stdout) if replayed.returncode == 0 else {}
 
 
-def test_sim_mission_log_replays_exactly_and_robot_ended_stopped(sim_mission, sim_replay):
-    run, _, _ = sim_mission
+def test_the_mission_log_replays_exactly_and_the_robot_ended_stopped(ci_run, ci_replay):
+    run = ci_run
     messages = read_clean(run / "run.mcap")
     topics = {m.topic for m in messages}
     assert {"/nao/camera/image", "/nao/camera/calibration", "/tf", "/scene/object", "/agent/plan", "/agent/ekf"} <= topics
     assert last_walk(messages).vx == 0.0 and last_walk(messages).omega == 0.0
     assert not decode([m for m in messages if m.topic == STATE][-1].data, State).walking
     assert [m.json()["phase"] for m in messages if m.topic == DECISION][-1] == "finished"
-    replay, report = sim_replay
+    replay, report = ci_replay
     assert replay.returncode == 0, replay.stderr[-2000:]
     assert report["ok"] and report["decisions"] > 100 and report["divergence"] is None
 
@@ -218,10 +229,10 @@ def tampered_copy(src: Path, dst: Path, topic: str, rank: int) -> None:
     rewritten_copy(src, dst, topic, tamper)
 
 
-def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
+def test_replay_reports_the_first_divergence(ci_run, tmp_path):
     from station.replay import replay
 
-    run, _, _ = sim_mission
+    run = ci_run
     tampered = tmp_path / "tampered.mcap"
     tampered_copy(run / "run.mcap", tampered, DECISION, 40)
     result = replay(tampered)
@@ -230,25 +241,25 @@ def test_replay_reports_the_first_divergence(sim_mission, tmp_path):
     assert '"walk":[0.5,0.0,0.5]' in result.divergence.recorded
 
 
-def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(sim_mission, sim_replay, tmp_path):
+def test_replay_of_a_log_recorded_before_the_lease_compares_every_output(ci_run, ci_replay, tmp_path):
     """States logged before issue 14 lack owner, stop_failures and robot_watchdog: they decode with
     their documented defaults (nao_core.protocol.State), so replay compares outputs, not 'unreadable'."""
     from station.replay import replay
 
-    run, _, _ = sim_mission
+    run = ci_run
     added = ("owner", "stop_failures", "robot_watchdog")
     old = tmp_path / "old_states.mcap"
     rewritten_copy(run / "run.mcap", old, STATE,
                    lambda _, data: json.dumps({k: v for k, v in json.loads(data).items() if k not in added}).encode())
     assert all(not set(added) & set(m.json()) for m in read_log(old, topics={STATE}))
-    current, result = sim_replay[1], replay(old)
+    current, result = ci_replay[1], replay(old)
     assert result.unreadable is None, result.unreadable
     assert result.inputs == current["inputs"] and result.compared == current["compared"] > 0
     assert result.ok == current["ok"]  # the pilot reads none of the added fields: the same outputs
 
 
-def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission, tmp_path):
-    run, _, _ = sim_mission
+def test_the_offline_carve_is_watertight_holds_the_object_and_is_carved_around_it(ci_mission, ci_run, tmp_path):
+    run = ci_run
     result = json.loads((run / "result.json").read_text())
     model = tmp_path / "model.ply"
     carve = subprocess.run([PY, "-m", "station.cli", "carve", str(run / "run.mcap"), "-o", str(model)],
@@ -256,18 +267,20 @@ def test_sim_mission_offline_carve_is_watertight_and_contains_object(sim_mission
     assert carve.returncode == 0, carve.stderr[-2000:]
     mesh = trimesh.load(model)
     assert mesh.is_watertight
-    truth = result["ground_truth"]
-    # points well inside the true can (radius r, height h): on its axis and at half radius around it
+    scenario = random_world(ci_mission.seed).scenario
+    # points well inside the true object (every point 1.5 cm around them inside it too) are inside the model
+    x0, y0 = scenario.position
+    r, h = scenario.radius, scenario.height
+    grid = np.stack(np.meshgrid(np.linspace(x0 - r, x0 + r, 15), np.linspace(y0 - r, y0 + r, 15), np.linspace(0.0, h, 12)), -1).reshape(-1, 3)
+    around = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]) * 0.015
+    deep = grid[np.all([scenario.contains(grid + o) for o in around], axis=0)]
+    assert len(deep) >= 10
+    assert (winding_numbers(mesh, deep) > 0.5).all()
+    # and carved: at mid-height, twice the enclosing radius from the centre is outside the object's
+    # visual hull from any horizontal view around it (an uncarved volume would keep these)
     angles = np.linspace(0, 2 * math.pi, 8, endpoint=False)
-    heights = np.linspace(0.2, 0.8, 4) * truth["height"]
-    inner = [(truth["x"] + 0.5 * truth["r"] * math.cos(a), truth["y"] + 0.5 * truth["r"] * math.sin(a), z)
-             for a in angles for z in heights] + [(truth["x"], truth["y"], z) for z in heights]
-    assert (winding_numbers(mesh, np.array(inner)) > 0.5).all()
-    # and carved: at mid-height, twice the radius from the axis is outside the can's visual hull from
-    # any horizontal view around it (an uncarved volume would keep these)
-    outer = [(truth["x"] + 2.0 * truth["r"] * math.cos(a), truth["y"] + 2.0 * truth["r"] * math.sin(a), 0.5 * truth["height"])
-             for a in angles]
-    assert (winding_numbers(mesh, np.array(outer)) < 0.5).all()
+    outer = np.array([(x0 + 2.0 * r * math.cos(a), y0 + 2.0 * r * math.sin(a), 0.5 * h) for a in angles])
+    assert (winding_numbers(mesh, outer) < 0.5).all()
     assert json.loads(carve.stdout)["metrics"]["volume"] == pytest.approx(result["model"]["metrics"]["volume"], rel=1e-9)
 
 
