@@ -650,6 +650,7 @@ class Bridge:
                     T_BC=tuple(float(x) for x in frame.T_BC.ravel()),
                     odom=tuple(float(x) for x in frame.odom),
                     resolution=self.params.resolution,
+                    stamp_std=frame.stamp_std,
                 )
                 self._frame_pub.put(encode_frame(meta, jpeg.tobytes()))
                 seq += 1

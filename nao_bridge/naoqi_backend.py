@@ -67,6 +67,12 @@ therefore stamped s_k + offset - e, with e the exposure offset their images show
 kinematics (nao_bridge/camera_latency.py), learnt in [-``exposure_offset_max``,
 ``exposure_offset_max``]; frames on the camera bound get e within their latency.
 
+Each frame says how far its stamp may be from the instant its image shows (``stamp_std``, for the
+station's filter: a turning camera's bearing errs by the turn rate times it): ``LEARNT_STD`` once
+its estimator has ``min_pairs`` turning pairs; before, ``unlearnt_latency_std`` on the camera bound
+(late by the whole latency) and ``exposure_offset_max`` / sqrt(3) on stamped frames (an offset
+anywhere in +-``exposure_offset_max``).
+
 Capture-time kinematics. NAOqi does not return the joint angles with an image, and the image
 arrives tens of ms after its capture, while the torso rolls and the head turns. A sampler thread
 reads ``getAngles``, ``getTransform`` and ``getRobotPosition`` at ``kinematics_rate`` into a
@@ -90,7 +96,7 @@ import numpy as np
 import qi
 
 from nao_bridge.backend import RobotBackend
-from nao_bridge.camera_latency import LatencyEstimator, camera_heading
+from nao_bridge.camera_latency import LEARNT_STD, LatencyEstimator, camera_heading
 from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
 from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
 from nao_core.config import bounds
@@ -129,6 +135,7 @@ class NaoqiParams:
     camera_latency_min: float = field(metadata=bounds(0.0, 1.0))  # s, shortest capture-to-receive latency
     camera_latency_max: float = field(metadata=bounds(0.0, 10.0))  # s, longest plausible shortest latency
     exposure_offset_max: float = field(metadata=bounds(0.0, 0.5))  # s, farthest a stamped image's scene lies from its stamp
+    unlearnt_latency_std: float = field(metadata=bounds(0.0, 10.0))  # s, a camera-bound stamp's error before the latency is learnt
     clock_probe_rate: float = field(metadata=bounds(0.0, 100.0))  # Hz of ALMemory clock probes (0: camera only)
     clock_probe_window: int = field(metadata=bounds(1, 100000))  # probes in the shortest-round-trip choice
     kinematics_rate: float = field(metadata=bounds(5.0, 1000.0))  # Hz, head/T_BC/odometry sampling
@@ -415,7 +422,14 @@ class NaoqiBackend(RobotBackend):
             head_pitch=kin.head[1],
             T_BC=nao_to_optical(kin.T),
             odom=kin.odom,
+            stamp_std=self._stamp_std(learner),
         )
+
+    def _stamp_std(self, learner: LatencyEstimator) -> float:
+        """s: how far a frame's stamp may be from the instant its image shows (module docstring, Exposure)."""
+        if learner.pairs_used >= learner.min_pairs:
+            return LEARNT_STD
+        return self.params.unlearnt_latency_std if learner is self.latency else self.params.exposure_offset_max / math.sqrt(3.0)
 
     def _to_subscribed_size(self, bgr: np.ndarray) -> np.ndarray:
         """The image at the subscribed resolution. A NAOqi answering another size of the same sensor

@@ -22,6 +22,7 @@ class CameraFrame:
     head_pitch: float  # rad
     T_BC: np.ndarray  # 4 x 4 camera-in-robot at capture, optical convention
     odom: Tuple[float, float, float]  # odometry pose (x, y, theta) at capture
+    stamp_std: float = 0.0  # s, how far the stamp may be from the instant the image shows (docs/frames.md)
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     filter:        EKF predict(s - s_prev), then update(cam, phi, delta, C_cam), or initialize, with
                    C_cam = J P_t J^T + diag(0, 0, (w sigma_s)^2) from the localizer's total_covariance P_t
                    (agent/ekf.py) and the camera's turn rate w in O since the last frame: a frame's
-                   stamp is off by ``stamp_sigma`` (an exposure's offset, a latency not yet learnt:
-                   docs/frames.md), which turns the camera's heading by w times it; the filter starts
+                   stamp is off by sigma_s = max(``stamp_sigma``, the frame's ``stamp_std``) (an
+                   exposure's offset, a latency not yet learnt: the bridge says which, docs/frames.md),
+                   which turns the camera's heading by w times it; the filter starts
                    only from a camera turning slower than ``start_max_turn_rate`` (a bare NAOqi's
                    frames, late by 0.14 s before its latency was learnt, started matrix world 0's
                    filter 0.1 rad off from a head turning at 0.6 rad/s, and it gated every good view after);
@@ -376,7 +377,7 @@ class Pilot:
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam),
-                             turn_rate)
+                             turn_rate, meta.stamp_std)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
@@ -408,21 +409,21 @@ class Pilot:
         return abs(wrap_angle(heading - last[1])) / (stamp - last[0])
 
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
-                cam_cov: Optional[np.ndarray], turn_rate: Optional[float]) -> None:
-        self._views.append((stamp, cam_odom, phi, delta, turn_rate))
-        result = self._observe(stamp, cam, phi, delta, turn_rate, cam_cov)
+                cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_std: float) -> None:
+        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_std))
+        result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_std, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
         step.outputs.append(self._ekf_record(t))
 
     def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], turn_rate: Optional[float],
-                 cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+                 stamp_std: float, cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
         """Update the filter, or start it (from a camera known to turn slowly); the camera's turn over the
         stamp's error widens its heading's variance (module docstring)."""
         c = self.config.station
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            turn = np.diag([0.0, 0.0, ((turn_rate or 0.0) * c.stamp_sigma) ** 2])
+            turn = np.diag([0.0, 0.0, ((turn_rate or 0.0) * max(c.stamp_sigma, stamp_std)) ** 2])
             result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn)
         elif turn_rate is None:
             return UpdateResult(False, None, 0, None, "no start from a camera whose turn is not known yet")
@@ -454,9 +455,9 @@ class Pilot:
         self._last_capture = None
         if relocated:
             self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
-        for stamp, (cx, cy, psi), phi, delta, turn_rate in self._views:
+        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_std in self._views:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, phi, delta, turn_rate)  # phi is measured from psi: a rigid move leaves it
+            self._observe(stamp, cam, phi, delta, turn_rate, stamp_std)  # phi is measured from psi: a rigid move leaves it
             if relocated:
                 self.coverage.add(np.asarray(cam))
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from nao_bridge.bridge import BridgeParams
-from nao_bridge.camera_latency import STEP, THUMB_WIDTH, LatencyEstimator
+from nao_bridge.camera_latency import LEARNT_STD, STEP, THUMB_WIDTH, LatencyEstimator
 from nao_bridge.naoqi_backend import NaoqiBackend
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model
@@ -91,29 +91,33 @@ def test_a_still_camera_teaches_nothing():
 
 def test_a_bare_naoqi_on_another_clock_gets_its_frames_stamped_by_what_they_show():
     """No clock probe (bare stand-in), the robot clock 2000 s off, frames 100-110 ms late: the camera
-    bound alone stamps them 100 ms late; once the head has turned enough the images give the
-    latency and the stamps are within 15 ms."""
+    bound alone stamps them 100 ms late and says its stamps are worth ``unlearnt_latency_std``; once
+    the head has turned enough the images give the latency, the stamps are within 15 ms and say so."""
     model = load_robot_model()
     params = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi
     world = SimWorld("can", model, resolution="qvga", seed=8)
     with StandIn(world, clock_offset=2000.0, latency=(0.10, 0.11), bare=True) as standin:
         backend = NaoqiBackend(standin.url, model, params, "qvga", 15.0)
         backend.start()
-        errors = []
+        errors, stds = [], []
         started = time.monotonic()
         while time.monotonic() - started < 14.0 and (len(errors) < 20 or backend.latency.pairs_used < backend.latency.min_pairs):
             backend.set_head(0.9 if int(time.monotonic() - started) % 2 == 0 else -0.9, 0.1, 0.5)
             frame = backend.grab_frame(1.0)
             if frame is not None:
                 errors.append(frame.stamp - standin.video.captures[-1][1])
-        late = []
+                stds.append(frame.stamp_std)
+        late, late_stds = [], []
         for _ in range(10):
             frame = backend.grab_frame(1.0)
             if frame is not None:
                 late.append(frame.stamp - standin.video.captures[-1][1])  # served: the last capture
+                late_stds.append(frame.stamp_std)
         backend.close()
     assert backend.clock_source == "camera"
     assert errors[0] > 0.09  # before: the camera bound, a latency late
+    assert stds[0] == params.unlearnt_latency_std  # and it says so
+    assert late_stds and set(late_stds) == {LEARNT_STD}
     # tau is the camera bound's lateness: the stand-in's 100-110 ms and the image's transfer to the bridge
     # (150 kB through libqi: 5-10 ms here, more on a loaded machine)
     assert 0.10 - STEP <= backend.latency.tau <= 0.11 + 0.02
@@ -131,15 +135,19 @@ def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
     with StandIn(world, clock_offset=2000.0, latency=(0.05, 0.06)) as standin:
         backend = NaoqiBackend(standin.url, model, params, "qvga", 15.0)
         backend.start()
+        first = backend.grab_frame(1.0)
+        while first is None or backend.clock_source != "probe":  # the first frame stamped through the probe
+            first = backend.grab_frame(1.0)
         started = time.monotonic()
         while time.monotonic() - started < 30.0 and backend.exposure.pairs_used < 3 * backend.exposure.min_pairs:
             backend.set_head(0.9 if int(time.monotonic() - started) % 2 == 0 else -0.9, 0.1, 0.5)
             backend.grab_frame(1.0)
-        offsets = []
+        offsets, stds = [], []
         for _ in range(10):
             frame = backend.grab_frame(1.0)
             if frame is not None:
                 offsets.append(frame.stamp - standin.video.captures[-1][1])  # served: the last capture, stamped at its end
+                stds.append(frame.stamp_std)
         backend.close()
     assert backend.clock_source == "probe"
     # within 8 ms: the sampler stamps its readings mid-way through three NAOqi calls, a few ms after the
@@ -147,3 +155,6 @@ def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
     # lengthens those calls (alone: 10-12 ms learnt; once 8 ms in a full suite run)
     assert backend.exposure.tau == pytest.approx(0.015, abs=0.008)
     assert offsets and max(abs(o + 0.015) for o in offsets) < 0.009
+    # what the stamps are worth: an offset anywhere in +-exposure_offset_max before, LEARNT_STD after
+    assert first is not None and first.stamp_std == pytest.approx(params.exposure_offset_max / math.sqrt(3.0))
+    assert set(stds) == {LEARNT_STD}

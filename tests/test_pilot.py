@@ -39,9 +39,10 @@ INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga"
 W, H = INFO.intrinsics.width, INFO.intrinsics.height
 
 
-def frame(seq: int, jpeg: bytes, T_BC=tuple(MODEL.camera_in_robot(0.0, 0.2).ravel()), odom=(0.0, 0.0, 0.0), stamp=1.0) -> Frame:
+def frame(seq: int, jpeg: bytes, T_BC=tuple(MODEL.camera_in_robot(0.0, 0.2).ravel()), odom=(0.0, 0.0, 0.0), stamp=1.0,
+          stamp_std: float = 0.0) -> Frame:
     meta = FrameMeta(seq=seq, stamp=stamp, width=W, height=H, encoding="jpeg", head_yaw=0.0, head_pitch=0.2,
-                     T_BC=tuple(T_BC), odom=tuple(odom), resolution="qvga")
+                     T_BC=tuple(T_BC), odom=tuple(odom), resolution="qvga", stamp_std=stamp_std)
     return Frame(meta, b"", jpeg)  # the pilot reads the parsed meta only
 
 
@@ -477,3 +478,38 @@ def test_the_object_filter_starts_only_from_a_camera_turning_slowly():
     assert any(r.startswith("no start from a camera turning at 0.6") for r in reasons), reasons
     assert reasons[0].startswith("no start from a camera whose turn is not known yet"), reasons
     assert pilot.ekf.initialized and reasons[-1] == "ok"
+
+
+def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
+    """Frames 70 ms late (a bare NAOqi before its images taught it the latency: their kinematics are
+    of 70 ms after the image) while the head sweeps at 0.6 rad/s: each bearing errs by 2.4 deg, the
+    same way. Told nothing (``stamp_std`` 0: the floor ``station.stamp_sigma``), the sweep's views
+    pull the estimate the still head had made; told they are worth ``unlearnt_latency_std``
+    (docs/frames.md), they weigh so little that it stays put."""
+    late, sweep = 0.07, 0.6  # s, rad/s
+    moved, nis = {}, {}
+    for stamp_std in (0.0, 0.1):
+        now = [0.0]
+        world = SimWorld("can", MODEL, "qvga", seed=1, clock=lambda: now[0])
+        world.teleport(world.start_pose, head=(0.3, CONFIG.mission.init_pitch))
+        pilot = Pilot(NO_STANDSTILL, INFO)
+        sweeping = []
+        for seq in range(1, 20):
+            if seq == 10:  # the filter has started from the still head: now sweep
+                still = pilot.ekf.x.copy()
+                world.set_head(-0.3, CONFIG.mission.init_pitch, sweep / MODEL.head.max_speed)
+            now[0] += 0.1
+            image = world.render().image
+            now[0] += late
+            shot = world.render()  # the kinematics 70 ms after the image
+            now[0] -= late
+            step = pilot.handle(FrameReceived(now[0], frame(seq, jpeg(image), shot.T_BC.ravel(), shot.odom, shot.stamp - late,
+                                                            stamp_std)))
+            if seq >= 10:
+                sweeping += [o for o in step.outputs if isinstance(o, MeasurementRecord)]
+        assert len(sweeping) >= 8 and all(r.accepted for r in sweeping), [r.reason for r in sweeping]
+        moved[stamp_std] = float(np.hypot(*(pilot.ekf.x[:2] - still[:2])))
+        nis[stamp_std] = sum(r.nis for r in sweeping)
+    assert moved[0.0] > 0.005  # the biased sweep pulls a filter that trusts its stamps by millimetres
+    assert moved[0.1] < 0.2 * moved[0.0], moved
+    assert nis[0.1] < 0.2 * nis[0.0], nis

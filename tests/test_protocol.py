@@ -63,7 +63,7 @@ def _samples():
         ),
         FrameMeta(
             seq=1, stamp=1.7e9, width=640, height=480, encoding="jpeg", head_yaw=0.2, head_pitch=0.1,
-            T_BC=EYE, odom=(0.0, 0.0, 0.0), resolution="vga",
+            T_BC=EYE, odom=(0.0, 0.0, 0.0), resolution="vga", stamp_std=0.008,
         ),
         Info(
             bridge_version="0.1.0", backend="sim", robot=MODEL, resolution="vga",
@@ -280,3 +280,14 @@ def test_a_state_recorded_before_the_lease_decodes_with_the_documented_defaults(
     with pytest.raises(ProtocolError) as err:
         decode(json.dumps(drop("lease")).encode(), WalkCommand)
     assert err.value.reason == "missing_field"
+
+
+def test_a_frame_recorded_before_stamp_std_decodes_as_exact_and_a_negative_one_is_refused():
+    """``FrameMeta.stamp_std`` (docs/frames.md) is absent from older logs: 0, which the station's
+    filter reads as its own floor ``station.stamp_sigma``, as it did then."""
+    meta = next(m for m in samples() if isinstance(m, FrameMeta))
+    old = {k: v for k, v in json.loads(encode(meta)).items() if k != "stamp_std"}
+    assert decode(json.dumps(old).encode(), FrameMeta) == dataclasses.replace(meta, stamp_std=0.0)
+    with pytest.raises(ProtocolError) as err:
+        decode(json.dumps({**old, "stamp_std": -0.1}).encode(), FrameMeta)
+    assert err.value.reason == "bad_value"

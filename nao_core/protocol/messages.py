@@ -2,7 +2,8 @@
 
 Every message carries ``"v": PROTOCOL_VERSION`` and ``"type"``. JSON messages are UTF-8 objects
 with exactly the fields of their dataclass (plus ``v`` and ``type``); a field with a default (only
-``State``'s fields added after the first logs) may be absent and then takes its default. A frame is::
+fields added after the first logs: ``State``'s lease fields, ``FrameMeta.stamp_std``) may be absent
+and then takes its default. A frame is::
 
     b"NAOF" | version: u8 | meta_len: u32 little-endian | meta JSON (FrameMeta) | JPEG bytes
 
@@ -181,6 +182,8 @@ class FrameMeta:
     T_BC: Matrix4  # camera in robot at capture, optical convention, row by row
     odom: Pose2  # odometry pose at capture
     resolution: str  # camera resolution name in the robot model, e.g. "vga"
+    # s, how far the stamp may be from the instant the image shows (docs/frames.md); 0 in logs before it
+    stamp_std: float = field(default=0.0, metadata=bounds(0.0, 10.0))
 
 
 @dataclass(frozen=True)
