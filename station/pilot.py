@@ -32,7 +32,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
                    measured and agent.keyframes.KeyframePool keeps it: its viewing azimuth
                    a = atan2(C - o) differs from every earlier keyframe's by >= keyframe_min_angle,
-                   or its quality (pose precision x silhouette) doubles every one's near it; a
+                   or its quality (pose precision x silhouette) doubles every one's near it (the
+                   pose's heading variance includes the filter's (w sigma_s)^2: a turning camera's
+                   stamp error misplaces its silhouette as a heading error does); a
                    keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
                    against that fix's points (agent/keyframe_pose.py)
 
@@ -380,7 +382,8 @@ class Pilot:
                              turn_rate, meta.stamp_std)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix)
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix,
+                                         self._stamp_heading_variance(turn_rate, meta.stamp_std))
         if self.anchored:
             with guarded("coverage"):
                 self.coverage.add(np.asarray(cam))
@@ -408,6 +411,11 @@ class Pilot:
             return None
         return abs(wrap_angle(heading - last[1])) / (stamp - last[0])
 
+    def _stamp_heading_variance(self, turn_rate: Optional[float], stamp_std: float) -> float:
+        """rad^2: the camera heading's variance from a stamp off by max(``stamp_sigma``, ``stamp_std``)
+        while the camera turns at ``turn_rate`` (unknown: 0) (module docstring)."""
+        return ((turn_rate or 0.0) * max(self.config.station.stamp_sigma, stamp_std)) ** 2
+
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
                 cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_std: float) -> None:
         self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_std))
@@ -423,7 +431,7 @@ class Pilot:
         c = self.config.station
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            turn = np.diag([0.0, 0.0, ((turn_rate or 0.0) * max(c.stamp_sigma, stamp_std)) ** 2])
+            turn = np.diag([0.0, 0.0, self._stamp_heading_variance(turn_rate, stamp_std)])
             result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn)
         elif turn_rate is None:
             return UpdateResult(False, None, 0, None, "no start from a camera whose turn is not known yet")
@@ -476,12 +484,13 @@ class Pilot:
 
     def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
                         predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None,
-                        fix: Optional[PoseFix] = None) -> None:
+                        fix: Optional[PoseFix] = None, stamp_heading_variance: float = 0.0) -> None:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
         c = self.config.carving
-        quality = pose_quality(self.localizer.covariance, math.hypot(cam[0] - self.ekf.x[0], cam[1] - self.ekf.x[1]),
+        covariance = self.localizer.covariance + np.diag([0.0, 0.0, stamp_heading_variance])  # a turning camera's stamp error
+        quality = pose_quality(covariance, math.hypot(cam[0] - self.ekf.x[0], cam[1] - self.ekf.x[1]),
                                c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
         if not self._keyframes.offer(azimuth, quality):
             return

@@ -513,3 +513,29 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
     assert moved[0.0] > 0.005  # the biased sweep pulls a filter that trusts its stamps by millimetres
     assert moved[0.1] < 0.2 * moved[0.0], moved
     assert nis[0.1] < 0.2 * nis[0.0], nis
+
+
+def test_a_turning_cameras_keyframe_weighs_its_stamp_error():
+    """The same view, offered as a keyframe: from a still camera it keeps the quality of its pose;
+    from a camera turning at 0.6 rad/s whose stamp is worth 0.1 s (docs/carving.md), its heading is
+    worth 60 mrad, 36 mm at the object 0.6 m away, and its quality drops by the module's formula."""
+    from agent.ekf import ObjectEKF
+    from agent.keyframes import pose_quality
+    from station.outputs import KeyframeRecord
+
+    qualities = []
+    for turn_rate, stamp_std in ((None, 0.0), (0.6, 0.1)):
+        pilot = Pilot(CONFIG, INFO)
+        pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, np.array([0.6, 0.0, 0.05]), np.diag([1e-6, 1e-6, 1e-6]))
+        pilot.localizer.covariance = np.diag([0.002**2, 0.002**2, 0.002**2])
+        step = SimpleNamespace(outputs=[], keyframe=None)
+        mask = np.zeros((H, W), bool)
+        mask[60:180, 140:180] = True
+        variance = pilot._stamp_heading_variance(turn_rate, stamp_std)
+        pilot._maybe_keyframe(step, 1.0, 1, (0.0, 0.0, 0.0), mask, np.eye(4), None, stamp_heading_variance=variance)
+        qualities.append(next(o.quality for o in step.outputs if isinstance(o, KeyframeRecord)))
+    sigma_0 = CONFIG.carving.keyframe_pose_std
+    still = pose_quality(np.diag([0.002**2, 0.002**2, 0.002**2]), 0.6, sigma_0)
+    turning = pose_quality(np.diag([0.002**2, 0.002**2, 0.002**2 + 0.06**2]), 0.6, sigma_0)
+    assert qualities == pytest.approx([still, turning])
+    assert turning < 0.1 * still
