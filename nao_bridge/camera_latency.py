@@ -104,6 +104,11 @@ class LatencyEstimator:
                 self._add_pair(float(dx), self.focal * turn)
         self._previous = (thumb, heading, position)
 
+    @property
+    def learnt(self) -> bool:
+        """Enough turning pairs (``min_pairs``) for an estimate."""
+        return self.pairs_used >= self.min_pairs
+
     def _add_pair(self, dx: float, predicted: np.ndarray) -> None:
         """A frame pair's observed and predicted (per tau) shifts; tau re-chosen over the window."""
         if len(self._pairs) == self._window:
@@ -116,7 +121,7 @@ class LatencyEstimator:
         if squared is not None:
             self._residual += squared
             self.pairs_used += 1
-        if self.pairs_used >= self.min_pairs:
+        if self.learnt:
             best = int(np.argmin(self._residual))
             if self._residual[best] < self._residual[self._zero]:
                 self.tau = float(self.taus[best])

@@ -427,7 +427,7 @@ class NaoqiBackend(RobotBackend):
 
     def _stamp_std(self, learner: LatencyEstimator) -> float:
         """s: how far a frame's stamp may be from the instant its image shows (module docstring, Exposure)."""
-        if learner.pairs_used >= learner.min_pairs:
+        if learner.learnt:
             return LEARNT_STD
         return self.params.unlearnt_latency_std if learner is self.latency else self.params.exposure_offset_max / math.sqrt(3.0)
 
@@ -458,7 +458,7 @@ class NaoqiBackend(RobotBackend):
         position = [np.interp(stamp, stamps, odom[:, i]) for i in (0, 1)]
         learner.add(bgr, stamp, (stamps, np.unwrap(headings)), position)
         told = self._logged_tau[learner]
-        if learner.pairs_used >= learner.min_pairs and (told is None or abs(learner.tau - told) >= 0.005):
+        if learner.learnt and (told is None or abs(learner.tau - told) >= 0.005):
             self._logged_tau[learner] = learner.tau
             what = "before the camera bound" if learner is self.latency else "before their NAOqi stamps (the exposure's middle)"
             log.info("NAOqi frames from their images: stamped %.0f ms %s (%d turning pairs)", 1e3 * learner.tau, what,

@@ -346,6 +346,7 @@ class Pilot:
             T_OC = camera_in_world(tuple(float(v) for v in meta.odom), T_BC)
             cam_odom = (float(T_OC[0, 3]), float(T_OC[1, 3]), optical_axis_heading(T_OC))
             turn_rate = self._turn_rate(meta.stamp, cam_odom[2])
+            stamp_variance = self._stamp_heading_variance(turn_rate, meta.stamp_std)
         with guarded("calibration"):
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
             self.standstill.on_head(t, meta.head_yaw, meta.head_pitch)
@@ -379,11 +380,10 @@ class Pilot:
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam),
-                             turn_rate, meta.stamp_std)
+                             turn_rate, stamp_variance)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix,
-                                         self._stamp_heading_variance(turn_rate, meta.stamp_std))
+                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix, stamp_variance)
         if self.anchored:
             with guarded("coverage"):
                 self.coverage.add(np.asarray(cam))
@@ -417,21 +417,21 @@ class Pilot:
         return ((turn_rate or 0.0) * max(self.config.station.stamp_sigma, stamp_std)) ** 2
 
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
-                cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_std: float) -> None:
-        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_std))
-        result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_std, cam_cov)
+                cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_variance: float) -> None:
+        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_variance))
+        result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
         step.outputs.append(self._ekf_record(t))
 
     def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], turn_rate: Optional[float],
-                 stamp_std: float, cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
-        """Update the filter, or start it (from a camera known to turn slowly); the camera's turn over the
-        stamp's error widens its heading's variance (module docstring)."""
+                 stamp_variance: float, cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+        """Update the filter, or start it (from a camera known to turn slowly); ``stamp_variance``, the
+        camera's turn over the stamp's error, widens its heading's variance (module docstring)."""
         c = self.config.station
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
-            turn = np.diag([0.0, 0.0, self._stamp_heading_variance(turn_rate, stamp_std)])
+            turn = np.diag([0.0, 0.0, stamp_variance])
             result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn)
         elif turn_rate is None:
             return UpdateResult(False, None, 0, None, "no start from a camera whose turn is not known yet")
@@ -463,9 +463,9 @@ class Pilot:
         self._last_capture = None
         if relocated:
             self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
-        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_std in self._views:
+        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_variance in self._views:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, phi, delta, turn_rate, stamp_std)  # phi is measured from psi: a rigid move leaves it
+            self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance)  # phi is measured from psi: a rigid move leaves it
             if relocated:
                 self.coverage.add(np.asarray(cam))
 
@@ -484,12 +484,12 @@ class Pilot:
 
     def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
                         predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None,
-                        fix: Optional[PoseFix] = None, stamp_heading_variance: float = 0.0) -> None:
+                        fix: Optional[PoseFix] = None, stamp_variance: float = 0.0) -> None:
         if not self.ekf.initialized:
             return
         azimuth = math.atan2(cam[1] - self.ekf.x[1], cam[0] - self.ekf.x[0])
         c = self.config.carving
-        covariance = self.localizer.covariance + np.diag([0.0, 0.0, stamp_heading_variance])  # a turning camera's stamp error
+        covariance = self.localizer.covariance + np.diag([0.0, 0.0, stamp_variance])  # a turning camera's stamp error
         quality = pose_quality(covariance, math.hypot(cam[0] - self.ekf.x[0], cam[1] - self.ekf.x[1]),
                                c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
         if not self._keyframes.offer(azimuth, quality):

@@ -43,6 +43,7 @@ from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import LandmarkMap
 from nao_core.protocol import State, Truth, WalkCommand, decode
 from nao_core.robot_model import load_robot_model
+from nao_sim.meshes import contains
 from nao_sim.randomize import fixed_world, random_world
 from nao_sim.render import Renderer
 from nao_sim.scenarios import load_sim_config
@@ -181,21 +182,6 @@ def test_the_mission_log_replays_exactly_and_the_robot_ended_stopped(ci_run, ci_
     assert report["ok"] and report["decisions"] > 100 and report["divergence"] is None
 
 
-def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    """Generalized winding number of each point (1 inside a closed outward mesh, 0 outside):
-    the sum of the triangles' solid angles over 4 pi (Van Oosterom and Strackee)."""
-    triangles = mesh.vertices[mesh.faces]  # (F, 3, 3)
-    numbers = []
-    for p in points:
-        a, b, c = (triangles[:, k, :] - p for k in range(3))
-        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
-        numerator = np.einsum("fi,fi->f", a, np.cross(b, c))
-        denominator = la * lb * lc + np.einsum("fi,fi->f", a, b) * lc + np.einsum("fi,fi->f", a, c) * lb \
-            + np.einsum("fi,fi->f", b, c) * la
-        numbers.append((2.0 * np.arctan2(numerator, denominator)).sum() / (4.0 * math.pi))
-    return np.array(numbers)
-
-
 def rewritten_copy(src: Path, dst: Path, topic: str, change: Callable[[int, bytes], bytes]) -> None:
     """Copy an MCAP log, the ``i``-th message on ``topic`` replaced by ``change(i, its bytes)``."""
     from mcap.reader import make_reader
@@ -275,12 +261,12 @@ def test_the_offline_carve_is_watertight_holds_the_object_and_is_carved_around_i
     around = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]) * 0.015
     deep = grid[np.all([scenario.contains(grid + o) for o in around], axis=0)]
     assert len(deep) >= 10
-    assert (winding_numbers(mesh, deep) > 0.5).all()
+    assert contains((mesh.vertices, mesh.faces), deep).all()
     # and carved: at mid-height, twice the enclosing radius from the centre is outside the object's
     # visual hull from any horizontal view around it (an uncarved volume would keep these)
     angles = np.linspace(0, 2 * math.pi, 8, endpoint=False)
     outer = np.array([(x0 + 2.0 * r * math.cos(a), y0 + 2.0 * r * math.sin(a), 0.5 * h) for a in angles])
-    assert (winding_numbers(mesh, outer) < 0.5).all()
+    assert not contains((mesh.vertices, mesh.faces), outer).any()
     assert json.loads(carve.stdout)["metrics"]["volume"] == pytest.approx(result["model"]["metrics"]["volume"], rel=1e-9)
 
 
