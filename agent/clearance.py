@@ -19,6 +19,9 @@ from some sides than that radius says, which d_width reads as near (measured: a 
 away read as 0.17 m from the side, and the guard held the robot turning on the spot to the time
 limit, docs/benchmarks.md "Mission matrix"). With the base cut, min(d_floor, d_width) over those
 available; None when neither is.
+
+The same contact starts the object filter's range (agent/ekf.py, docs/estimation.md "Floor
+contact"): its depression below the horizontal, atan2(C_z, d_floor), seen from the height C_z.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Optional
 import numpy as np
 
 from agent.camera import CameraModel
+from agent.ekf import FloorContact
 from agent.perception import Silhouette
 
 
@@ -46,6 +50,17 @@ def floor_distance(silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray
         return None  # the bottom edge is not on the floor in front of this camera
     p = C + (-C[2] / d[2]) * d
     return float(math.hypot(p[0] - C[0], p[1] - C[1]))
+
+
+def floor_contact(silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray) -> Optional[FloorContact]:
+    """The floor contact of a silhouette whose base is in view (not cut by the bottom border), or None."""
+    if silhouette.touches_bottom:
+        return None
+    distance = floor_distance(silhouette, camera, T_WC)
+    if distance is None:
+        return None
+    height = float(T_WC[2, 3])
+    return FloorContact(math.atan2(height, distance), height)
 
 
 def width_distance(delta: Optional[float], radius: float) -> Optional[float]:

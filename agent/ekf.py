@@ -128,6 +128,8 @@ class EKFParams:
     width_shape_window: float = field(metadata=bounds(1.0, 1e6))  # views: forgetting of the width-variability estimate
     width_shape_significance: float = field(metadata=bounds(0.0, 100.0))  # sigmas of excess before inflating
     width_shape_max: float = field(metadata=bounds(0.0, 10.0))  # largest relative width std c
+    floor_angle_std: float = field(metadata=bounds(1e-6, 0.5))  # rad, depression of the base's floor contact
+    floor_shape_std: float = field(metadata=bounds(0.0, 2.0))  # the contact's distance std from the shape, times r
     width_model: WidthModel
 
     def __post_init__(self) -> None:
@@ -237,6 +239,27 @@ def pose_noise(x: np.ndarray, cam: np.ndarray, cam_cov: np.ndarray, width_model:
     H = measurement_jacobian(x, cam, width_model)
     Hc = np.column_stack([-H[:, 0], -H[:, 1], [-1.0, 0.0]])
     return Hc @ np.asarray(cam_cov, dtype=float) @ Hc.T
+
+
+@dataclass(frozen=True)
+class FloorContact:
+    """Where the silhouette's lowest row meets the floor (agent/clearance.py), seen from a camera
+    ``height`` m above the floor: that ray's ``depression`` below the horizontal, rad."""
+
+    depression: float
+    height: float
+
+    def valid(self) -> bool:
+        return math.isfinite(self.depression) and 0.0 < self.depression < 0.5 * math.pi and math.isfinite(self.height) and self.height > 0.0
+
+
+def floor_depression(x: np.ndarray, cam: np.ndarray, height: float) -> Tuple[float, np.ndarray]:
+    """Predicted depression of the floor contact of state ``x`` seen from ``cam``, and d/dx (module docstring)."""
+    c, s = math.cos(cam[2]), math.sin(cam[2])
+    v = np.array([x[0] - x[2] * c - cam[0], x[1] - x[2] * s - cam[1]])
+    d = max(math.hypot(*v), 1e-9)
+    g = -height / (height * height + d * d)  # d theta / d |v|
+    return math.atan2(height, d), g * np.array([v[0] / d, v[1] / d, -(c * v[0] + s * v[1]) / d])
 
 
 def _inverse_spd(S: np.ndarray) -> np.ndarray:
@@ -349,6 +372,11 @@ class CartesianState:
     def cartesian(self) -> Tuple[np.ndarray, np.ndarray]:
         return self.mean, self.cov
 
+    @staticmethod
+    def point(m: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """x(m) = m and dx/dm = I."""
+        return m, np.eye(3)
+
     def model(self, m: np.ndarray, cam: np.ndarray, dof: int, width_model: WidthModel) -> Tuple[np.ndarray, np.ndarray]:
         """h(m, cam) and dh/dm, the first ``dof`` rows."""
         return measure(m, cam, width_model)[:dof], measurement_jacobian(m, cam, width_model)[:dof]
@@ -363,7 +391,7 @@ class CartesianState:
     def predicted(self, Q: np.ndarray) -> "CartesianState":
         return CartesianState(self.mean, self.cov + Q)
 
-    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams) -> "CartesianState":
+    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams, parallax: bool) -> "CartesianState":
         """The posterior, with the radius projected onto r >= min_radius."""
         m = m.copy()
         m[2] = max(m[2], params.min_radius)
@@ -378,17 +406,16 @@ class InverseRangeState:
     mean: np.ndarray
     cov: np.ndarray
 
-    def jacobian(self) -> np.ndarray:
-        """J = d(xo, yo, r) / d(beta, rho, s) at the mean."""
-        beta, rho, size = self.mean
+    def point(self, m: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """x(m) and J = d(xo, yo, r) / d(beta, rho, s) at m."""
+        beta, rho, size = m
         c, s = math.cos(beta), math.sin(beta)
-        return np.array([[-s / rho, -c / rho**2, 0.0], [c / rho, -s / rho**2, 0.0], [0.0, -size / rho**2, 1.0 / rho]])
+        x = np.array([self.anchor[0] + c / rho, self.anchor[1] + s / rho, size / rho])
+        return x, np.array([[-s / rho, -c / rho**2, 0.0], [c / rho, -s / rho**2, 0.0], [0.0, -size / rho**2, 1.0 / rho]])
 
     def cartesian(self) -> Tuple[np.ndarray, np.ndarray]:
         """x(y) and J P_y J^T (first order)."""
-        beta, rho, size = self.mean
-        x = np.array([self.anchor[0] + math.cos(beta) / rho, self.anchor[1] + math.sin(beta) / rho, size / rho])
-        J = self.jacobian()
+        x, J = self.point(self.mean)
         return x, J @ self.cov @ J.T
 
     def model(self, m: np.ndarray, cam: np.ndarray, dof: int, width_model: WidthModel) -> Tuple[np.ndarray, np.ndarray]:
@@ -412,13 +439,14 @@ class InverseRangeState:
         return None
 
     def predicted(self, Q: np.ndarray) -> "InverseRangeState":
-        J_inv = np.linalg.inv(self.jacobian())
+        J_inv = np.linalg.inv(self.point(self.mean)[1])
         return InverseRangeState(self.anchor, self.mean, self.cov + J_inv @ Q @ J_inv.T)
 
-    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams) -> Union["InverseRangeState", CartesianState]:
-        """The posterior; on (x, P) once std(rho) < inverse_range_switch * rho."""
+    def updated(self, m: np.ndarray, cov: np.ndarray, params: EKFParams, parallax: bool) -> Union["InverseRangeState", CartesianState]:
+        """The posterior; on (x, P) once std(rho) < inverse_range_switch * rho after a view with
+        ``parallax`` (one that updated rho: a floor contact alone does not end the considered updates)."""
         state = InverseRangeState(self.anchor, m, cov)
-        if math.sqrt(cov[1, 1]) < params.inverse_range_switch * m[1]:
+        if parallax and math.sqrt(cov[1, 1]) < params.inverse_range_switch * m[1]:
             return CartesianState(*state.cartesian())
         return state
 
@@ -426,11 +454,13 @@ class InverseRangeState:
 State = Union[CartesianState, InverseRangeState]
 
 
-def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Optional[float]) -> State:
+def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Optional[float],
+                  floor: Optional[FloorContact] = None) -> State:
     """The state from a first view (docs/estimation.md, "Initialization"); inputs already validated.
 
     With a width: inverse range, y0 = (psi + phi, s / r0, s), P_y0 = G diag(s_phi^2, s_delta^2,
     s_r0^2) G^T, G = dy0 / d(phi, delta, r0). Without: Cartesian, range ~ N(default_range, std^2).
+    A ``floor`` contact is then fused into it (:func:`_with_floor`).
     """
     cx, cy, psi = (float(v) for v in cam)
     heading = psi + phi
@@ -440,15 +470,38 @@ def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Op
         rng = p.default_range
         G = np.array([[-rng * s, c, 0.0], [rng * c, s, 0.0], [0.0, 0.0, 1.0]])  # d(xo, yo, r) / d(phi, range, r0)
         x = np.array([cx + rng * c, cy + rng * s, p.radius_prior])
-        return CartesianState(x, G @ np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2 @ G.T)
-    if p.width_model == "asin":
-        size, d_size = math.sin(0.5 * delta), 0.5 * math.cos(0.5 * delta)
+        state: State = CartesianState(x, G @ np.diag([p.sigma_phi, p.default_range_std, p.radius_prior_std]) ** 2 @ G.T)
     else:
-        size, d_size = math.tan(delta), 1.0 / math.cos(delta) ** 2
-    rho = size / p.radius_prior
-    G = np.array([[1.0, 0.0, 0.0], [0.0, d_size / p.radius_prior, -rho / p.radius_prior], [0.0, d_size, 0.0]])
-    P_y = G @ np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2 @ G.T
-    return InverseRangeState(np.array([cx, cy]), np.array([heading, rho, size]), P_y)
+        if p.width_model == "asin":
+            size, d_size = math.sin(0.5 * delta), 0.5 * math.cos(0.5 * delta)
+        else:
+            size, d_size = math.tan(delta), 1.0 / math.cos(delta) ** 2
+        rho = size / p.radius_prior
+        G = np.array([[1.0, 0.0, 0.0], [0.0, d_size / p.radius_prior, -rho / p.radius_prior], [0.0, d_size, 0.0]])
+        P_y = G @ np.diag([p.sigma_phi, p.sigma_delta, p.radius_prior_std]) ** 2 @ G.T
+        state = InverseRangeState(np.array([cx, cy]), np.array([heading, rho, size]), P_y)
+    return state if floor is None else _with_floor(state, np.array([cx, cy, psi]), floor, params)
+
+
+def _with_floor(state: State, cam: np.ndarray, floor: FloorContact, params: EKFParams) -> State:
+    """``state`` updated by the depression of its floor contact (docs/estimation.md, "Floor contact"),
+    with R = floor_angle_std^2 + (|d theta / d d| floor_shape_std r)^2, r the radius the contact and
+    the state's angular size give; ``state`` itself when the contact fails the gate."""
+    x = state.cartesian()[0]
+    distance = floor.height / math.tan(floor.depression)
+    size = x[2] / math.hypot(x[0] - cam[0], x[1] - cam[1])
+    slope = floor.height / (floor.height**2 + distance**2)
+    R = np.array([[params.floor_angle_std**2 + (slope * params.floor_shape_std * size * distance / (1.0 - size)) ** 2]])
+
+    def model(m: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        point, J = state.point(m)
+        theta, d_theta = floor_depression(point, cam, floor.height)
+        return np.array([theta]), (d_theta @ J)[None, :]
+
+    step = iterated_update(state.mean, state.cov, np.array([floor.depression]), R, model, lambda m: state.valid(m, cam), params.iterations)
+    if step is None or step.nis > chdtri(1, 1.0 - params.gate_probability):
+        return state
+    return state.updated(step.mean, step.cov, params, parallax=False)
 
 
 # The update ------------------------------------------------------------------------------------
@@ -595,7 +648,7 @@ class ObjectEKF:
             "stats": self.stats.as_dict(),
         }
 
-    def _invalid(self, cam: Sequence[float], phi: float, delta: Optional[float]) -> Optional[str]:
+    def _invalid(self, cam: Sequence[float], phi: float, delta: Optional[float], floor: Optional[FloorContact] = None) -> Optional[str]:
         try:
             cam_ok = np.shape(cam) == (3,) and bool(np.all(np.isfinite(np.asarray(cam, dtype=float))))
         except (TypeError, ValueError):
@@ -606,6 +659,8 @@ class ObjectEKF:
             return f"bearing must be a finite number, got {phi!r}"
         if delta is not None and not (isinstance(delta, Real) and math.isfinite(delta) and 0.0 < delta < self._max_width):
             return f"width must be finite and in (0, {self._max_width:.4f}) rad, got {delta!r}"
+        if floor is not None and not (isinstance(floor, FloorContact) and floor.valid()):
+            return f"floor contact must have a depression in (0, pi/2) rad and a height > 0 m, got {floor!r}"
         return None
 
     @staticmethod
@@ -625,13 +680,14 @@ class ObjectEKF:
         self.stats.rejected_in_a_row += 1
         return UpdateResult(False, None, dof, None, reason)
 
-    def initialize(self, cam: Sequence[float], phi: float, delta: Optional[float] = None) -> UpdateResult:
+    def initialize(self, cam: Sequence[float], phi: float, delta: Optional[float] = None,
+                   floor: Optional[FloorContact] = None) -> UpdateResult:
         """Set the estimate from a first observation (:func:`initial_state`); replaces any previous one."""
         dof = 1 if delta is None else 2
-        reason = self._invalid(cam, phi, delta)
+        reason = self._invalid(cam, phi, delta, floor)
         if reason is not None:
             return self._reject_invalid(reason, dof)
-        self._state = initial_state(self.params, cam, phi, delta)
+        self._state = initial_state(self.params, cam, phi, delta, floor)
         self._alternative, self._streak, self._fused = None, 0, 1
         self.stats.accepted += 1
         return UpdateResult(True, None, dof, None, "initialized")
@@ -692,7 +748,7 @@ class ObjectEKF:
             return self._inconsistent(cam, z, R, None, nu, "update would put the camera inside the object or is degenerate")
         if step.nis > self._gate[dof]:
             return self._inconsistent(cam, z, R, step.nis, nu, f"NIS {step.nis:.1f} above gate {self._gate[dof]:.1f}")
-        self._state = state.updated(step.mean, step.cov, self.params)
+        self._state = state.updated(step.mean, step.cov, self.params, state.considered(cam, self.params) is None)
         self._alternative, self._streak = None, 0
         self._fused += 1
         self.stats.accepted += 1
@@ -717,7 +773,8 @@ class ObjectEKF:
             self.stats.gated += 1
         step = None if self._alternative is None else self._fuse(self._alternative, cam, z, R)
         if step is not None and step.nis <= self._gate[len(z)]:
-            self._alternative = self._alternative.updated(step.mean, step.cov, self.params)
+            self._alternative = self._alternative.updated(step.mean, step.cov, self.params,
+                                                          self._alternative.considered(cam, self.params) is None)
             self._streak += 1
         else:
             self._alternative = initial_state(self.params, cam, float(z[0]), float(z[1]) if len(z) == 2 else None)

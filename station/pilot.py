@@ -17,7 +17,8 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
     calibration:   a fix made standing is stored by agent/self_calibration.py; an estimate applied
                    switches the camera of every step to the corrected intrinsics (/agent/self_calibration)
     perception:    silhouette, (phi, delta) (delta None when cut by a side border), the distance
-                   the image gives (agent/clearance.py)
+                   the image gives (agent/clearance.py), and, with the base in view, its floor
+                   contact: the depression atan2(C_z, d_floor) of the silhouette's lowest row
     filter:        EKF predict(s - s_prev), then update(cam, phi, delta, C_cam), or initialize, with
                    C_cam = J P_t J^T + diag(0, 0, (w sigma_s)^2) from the localizer's total_covariance P_t
                    (agent/ekf.py) and the camera's turn rate w in O since the last frame: a frame's
@@ -27,6 +28,8 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    only from a camera turning slower than ``start_max_turn_rate`` (a bare NAOqi's
                    frames, late by 0.14 s before its latency was learnt, started matrix world 0's
                    filter 0.1 rad off from a head turning at 0.6 rad/s, and it gated every good view after);
+                   the floor contact fused into a start (agent/ekf.py: the range a radius prior
+                   left 3x off, matrix world 11, docs/estimation.md "Floor contact");
                    none once the mission has decided (DONE, STOPPING: the same view again and again
                    while the robot stops must not move, let alone re-initialize, the estimate decided on)
     coverage, keyframe (once anchored): coverage.add(cam); keyframe iff the whole silhouette was
@@ -59,7 +62,9 @@ views stored nothing; tried again ``standstill_interval`` s later while no estim
 ``standstill_attempts`` in all (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
-and the next yaw of the landmark scan.
+(before an estimate, its last sighting: matrix world 23 once first saw its bunny cut by the image's
+side, started no filter and scanned for landmarks until the object was lost) and the next yaw of the
+landmark scan.
 Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
 last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (slot = floor(t /
 gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` from the current pose
@@ -114,10 +119,10 @@ import cv2
 import numpy as np
 
 from agent.camera import CameraModel, optical_axis_heading
-from agent.clearance import image_distance
+from agent.clearance import floor_contact, image_distance
 from agent.keep_in import KeepIn
 from agent.coverage import Coverage, seen_fraction
-from agent.ekf import ObjectEKF, UpdateResult
+from agent.ekf import FloorContact, ObjectEKF, UpdateResult
 from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
@@ -223,7 +228,8 @@ class Pilot:
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.dropped: Counter = Counter()  # frames dropped, by the step that raised
-        self._views: Deque[Tuple[float, Cam, float, Optional[float], Optional[float]]] = deque(maxlen=VIEWS_KEPT)  # (stamp, cam, phi, delta, turn rate) in O
+        # (stamp, cam, phi, delta, turn rate, stamp heading variance, floor contact) in O
+        self._views: Deque[Tuple[float, Cam, float, Optional[float], Optional[float], float, Optional[FloorContact]]] = deque(maxlen=VIEWS_KEPT)
         self._last_camera: Optional[Tuple[float, float]] = None  # (stamp, camera heading in O) of the last frame
         self.relocalized = 0  # filters rebuilt after a fix moved the pose by more than relocalize_shift
         self._t_plan: Optional[float] = None
@@ -233,6 +239,7 @@ class Pilot:
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
+        self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
         self._near: Optional[Tuple[float, float]] = None  # the surface point q_O the last measured image gave (odometry frame)
         self._base_pitch: Optional[float] = None  # least head pitch that brings a bottom-cut base back in view
         ray = self.camera.pixels_to_rays(np.array([[self.camera.width / 2.0, self.camera.height - 1.0]]))[0]
@@ -363,11 +370,12 @@ class Pilot:
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
             measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
-            self._sighting = self._base_pitch = None
+            self._sighting = self._base_pitch = floor = None
             if measurement is not None:
-                self._sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
+                self._sighting = self._last_sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
                 if silhouette.touches_bottom:
                     self._base_pitch = meta.head_pitch + self._bottom_row_angle
+                floor = floor_contact(silhouette, self.camera, T_WC)
                 self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
                                    self.ekf.x if self.ekf.initialized else None)
                 radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior
@@ -380,7 +388,7 @@ class Pilot:
         if measurement is not None and measurement.bearing_valid and not decided:  # a side-cut silhouette gives neither bearing nor width
             with guarded("filter"):
                 self._filter(step, t, meta.seq, meta.stamp, cam, cam_odom, measurement.phi, measurement.delta, self._camera_covariance(cam),
-                             turn_rate, stamp_variance)
+                             turn_rate, stamp_variance, floor)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
                     self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix, stamp_variance)
@@ -417,17 +425,18 @@ class Pilot:
         return ((turn_rate or 0.0) * max(self.config.station.stamp_sigma, stamp_std)) ** 2
 
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
-                cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_variance: float) -> None:
-        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_variance))
-        result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, cam_cov)
+                cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_variance: float, floor: Optional[FloorContact]) -> None:
+        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_variance, floor))
+        result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, floor, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
         step.outputs.append(self._ekf_record(t))
 
     def _observe(self, stamp: float, cam: Cam, phi: float, delta: Optional[float], turn_rate: Optional[float],
-                 stamp_variance: float, cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
-        """Update the filter, or start it (from a camera known to turn slowly); ``stamp_variance``, the
-        camera's turn over the stamp's error, widens its heading's variance (module docstring)."""
+                 stamp_variance: float, floor: Optional[FloorContact], cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+        """Update the filter, or start it (from a camera known to turn slowly, with the view's floor
+        contact); ``stamp_variance``, the camera's turn over the stamp's error, widens its heading's
+        variance (module docstring)."""
         c = self.config.station
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
@@ -439,7 +448,7 @@ class Pilot:
             return UpdateResult(False, None, 0, None, f"no start from a camera turning at {turn_rate:.2f} rad/s "
                                                       f"(above {c.start_max_turn_rate:g})")
         else:
-            result = self.ekf.initialize(cam, phi, delta)
+            result = self.ekf.initialize(cam, phi, delta, floor)
         self._last_capture = stamp
         return result
 
@@ -463,9 +472,9 @@ class Pilot:
         self._last_capture = None
         if relocated:
             self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
-        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_variance in self._views:
+        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_variance, floor in self._views:
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance)  # phi is measured from psi: a rigid move leaves it
+            self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, floor)  # phi is measured from psi: a rigid move leaves it
             if relocated:
                 self.coverage.add(np.asarray(cam))
 
@@ -510,11 +519,15 @@ class Pilot:
         return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
 
     def _localize_gaze(self, t: float) -> Tuple[float, float]:
-        """LOCALIZE: even dwells on the object, odd ones on the next yaw of the landmark scan."""
+        """LOCALIZE: even dwells on the object (its estimate, or before one its last sighting: a
+        silhouette cut by a side border starts no filter), odd ones on the next yaw of the landmark scan."""
         p = self.config.mission
         slot = int(t // p.gaze_dwell)
         if slot % 2 == 0 and self.ekf.initialized:
             return self._object_head()
+        if slot % 2 == 0 and self._last_sighting is not None:  # the robot stands in LOCALIZE: the head angles still hold
+            centroid, head_at_capture = self._last_sighting
+            return head_target(self.robot, None, None, self.config.head_servo, centroid, self.camera, head_at_capture)
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 

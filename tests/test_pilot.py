@@ -359,6 +359,30 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     assert low == MODEL.head.clamp(free[0], pilot._bottom_row_angle)  # noqa: SLF001
 
 
+def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at_while_localizing():
+    """No landmark fix yet, the object seen once cut by the image's left border (no bearing, so no
+    filter): LOCALIZE's object dwells turn the head towards that sighting, not back to the scan
+    (matrix world 23 lost its bunny so, docs/testing.md), and its landmark dwells still scan."""
+    pilot = Pilot(CONFIG, INFO)
+    pilot.handle(StateReceived(0.0, SimpleNamespace(stamp=0.0, odom=(0.0, 0.0, 0.0), head_yaw=0.0,
+                                                     head_pitch=CONFIG.mission.init_pitch, walking=False, fallen=False)))
+    pilot.handle(Tick(0.0))
+    pilot.handle(Tick(0.1))  # head centred: SEARCH
+    cut = np.full((H, W, 3), 128, np.uint8)
+    cv2.circle(cut, (5, H // 2), 30, (0, 0, 255), -1)
+    step = pilot.handle(FrameReceived(0.2, frame(1, jpeg(cut), stamp=0.2)))
+    assert not any(isinstance(o, MeasurementRecord) for o in step.outputs) and not pilot.ekf.initialized
+    assert pilot.mission.phase is Phase.LOCALIZE
+    blank = jpeg(np.full((H, W, 3), 128, np.uint8))
+    pilot.handle(FrameReceived(0.3, frame(2, blank, stamp=0.3)))  # unseen since
+    dwell = CONFIG.mission.gaze_dwell
+    on_object = pilot.handle(Tick(2.0 * dwell + 0.1)).decision.head
+    scan = pilot.handle(Tick(3.0 * dwell + 0.1)).decision.head
+    half_fov = math.atan2(W / 2.0, INFO.intrinsics.fx)
+    assert 0.8 * half_fov < on_object[0] < 1.2 * half_fov  # towards the left border, where the disc was cut
+    assert scan[0] == MODEL.head.clamp(CONFIG.mission.search_head_yaws[1], CONFIG.mission.init_pitch)[0]
+
+
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
     """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
     sway for a calibration error), the head alternating between the object and the directions
@@ -485,7 +509,8 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
     of 70 ms after the image) while the head sweeps at 0.6 rad/s: each bearing errs by 2.4 deg, the
     same way. Told nothing (``stamp_std`` 0: the floor ``station.stamp_sigma``), the sweep's views
     pull the estimate the still head had made; told they are worth ``unlearnt_latency_std``
-    (docs/frames.md), they weigh so little that it stays put."""
+    (docs/frames.md), they weigh so little that it moves less than a quarter of that (the still
+    head's start, its range from the floor contact, is already within 2 cm of the can)."""
     late, sweep = 0.07, 0.6  # s, rad/s
     moved, nis = {}, {}
     for stamp_std in (0.0, 0.1):
@@ -511,7 +536,7 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
         moved[stamp_std] = float(np.hypot(*(pilot.ekf.x[:2] - still[:2])))
         nis[stamp_std] = sum(r.nis for r in sweeping)
     assert moved[0.0] > 0.005  # the biased sweep pulls a filter that trusts its stamps by millimetres
-    assert moved[0.1] < 0.2 * moved[0.0], moved
+    assert moved[0.1] < 0.25 * moved[0.0], moved
     assert nis[0.1] < 0.2 * nis[0.0], nis
 
 
