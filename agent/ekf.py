@@ -45,6 +45,18 @@ moves rho by about eps / |a - c|, the same way from every frame of a standing ro
 rho row is zero; its innovation covariance still holds rho's variance, and the Joseph form is
 exact for that gain); beta and s are updated as usual.
 
+The start's floor contact (docs/estimation.md, "Floor contact"): with the object's base in view,
+the silhouette's lowest row meets the floor at the base's point nearest the camera along its
+optical axis, seen from the camera's height h under the depression theta below the horizontal::
+
+    p = (xo, yo) - r (cos psi, sin psi),  v = p - (cx, cy),  theta = atan2(h, |v|)
+    dtheta/dx = g (v_x / |v|, v_y / |v|, -(cos psi v_x + sin psi v_y) / |v|),  g = -h / (h^2 + |v|^2)
+    R = floor_angle_std^2 + (g floor_shape_std r)^2
+
+fused into the first view's state only (through x(y) and J on inverse range), which stays on
+inverse range until a view with parallax: the floor fixes the range a radius prior leaves 100 %
+uncertain, and views without parallax still leave rho alone.
+
 One pure update for both, :func:`iterated_update` (IEKF, Gauss-Newton on the MAP cost)::
 
     H_i = H(m_i),  r_i = wrap(z - h(m_i)) - H_i (m- - m_i),  S_i = H_i P- H_i^T + R,
