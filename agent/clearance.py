@@ -60,7 +60,8 @@ def floor_contact(silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray)
     if distance is None:
         return None
     height = float(T_WC[2, 3])
-    return FloorContact(math.atan2(height, distance), height)
+    contact = FloorContact(math.atan2(height, distance), height)
+    return contact if contact.valid() else None  # a pose without a finite height above the floor gives none
 
 
 def width_distance(delta: Optional[float], radius: float) -> Optional[float]:

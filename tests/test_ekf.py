@@ -274,6 +274,9 @@ def test_uninitialized_filter_and_bad_first_observation_are_rejected():
     assert not result.accepted and "bearing" in result.reason and not ekf.initialized
     with pytest.raises(ValueError, match="dt"):
         ekf.predict(-0.1)
+    for floor in (FloorContact(float("nan"), 0.5), FloorContact(-0.1, 0.5), FloorContact(0.4, 0.0), (0.4, 0.5)):
+        result = ekf.initialize((0.0, 0.0, 0.0), 0.1, 0.2, floor)
+        assert not result.accepted and "floor contact" in result.reason and not ekf.initialized
 
 
 def test_bearing_innovation_is_wrapped_across_pi():
