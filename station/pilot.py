@@ -64,7 +64,8 @@ current plan's first command (re-sent every tick: the bridge's deadman) and the 
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
 (before an estimate, its last sighting: matrix world 23 once first saw its bunny cut by the image's
 side, started no filter and scanned for landmarks until the object was lost) and the next yaw of the
-landmark scan.
+landmark scan. Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
+the robot stands until the filter starts).
 Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
 last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (slot = floor(t /
 gaze_dwell)) aim the head at the direction of ``localizer.best_landmark_view`` from the current pose
@@ -297,7 +298,7 @@ class Pilot:
                 f"self-calibration: standing for landmark views ({len(self.calibration.fixes)} of {p.min_frames} fixes, "
                 f"standstill {self.standstill.attempts} of {p.standstill_attempts})"))
         elif decision.phase is Phase.ACTIVE:
-            centroid, head_at_capture = self._sighting if self._sighting else (None, None)
+            centroid, head_at_capture = self._servo_sighting()
             head = self._landmark_lookout(t)
             if head is None:
                 head = head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera,
@@ -513,9 +514,16 @@ class Pilot:
 
     # per tick ---------------------------------------------------------------------------------
 
+    def _servo_sighting(self) -> Tuple[Optional[Tuple[float, float]], Optional[Tuple[float, float]]]:
+        """(centroid, head at capture) the head servo centres: this frame's sighting, or before an
+        estimate exists the last one (a silhouette cut by a side border starts no filter, and without
+        an estimate the robot stands, so its head angles still hold), or (None, None)."""
+        sighting = self._sighting or (None if self.ekf.initialized else self._last_sighting)
+        return sighting if sighting else (None, None)
+
     def _object_head(self) -> Tuple[float, float]:
-        """The head servo's target on the object estimate (and its last sighting)."""
-        centroid, head_at_capture = self._sighting if self._sighting else (None, None)
+        """The head servo's target on the object estimate (and its sighting, :meth:`_servo_sighting`)."""
+        centroid, head_at_capture = self._servo_sighting()
         return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
 
     def _localize_gaze(self, t: float) -> Tuple[float, float]:
@@ -523,11 +531,8 @@ class Pilot:
         silhouette cut by a side border starts no filter), odd ones on the next yaw of the landmark scan."""
         p = self.config.mission
         slot = int(t // p.gaze_dwell)
-        if slot % 2 == 0 and self.ekf.initialized:
+        if slot % 2 == 0 and (self.ekf.initialized or self._last_sighting is not None):
             return self._object_head()
-        if slot % 2 == 0 and self._last_sighting is not None:  # the robot stands in LOCALIZE: the head angles still hold
-            centroid, head_at_capture = self._last_sighting
-            return head_target(self.robot, None, None, self.config.head_servo, centroid, self.camera, head_at_capture)
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 

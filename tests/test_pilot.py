@@ -359,10 +359,12 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     assert low == MODEL.head.clamp(free[0], pilot._bottom_row_angle)  # noqa: SLF001
 
 
-def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at_while_localizing():
-    """No landmark fix yet, the object seen once cut by the image's left border (no bearing, so no
-    filter): LOCALIZE's object dwells turn the head towards that sighting, not back to the scan
-    (matrix world 23 lost its bunny so, docs/testing.md), and its landmark dwells still scan."""
+@pytest.mark.parametrize("localized", [False, True])
+def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at(localized):
+    """The object seen once cut by the image's left border (no bearing, so no filter), unseen since:
+    without a landmark fix, LOCALIZE's object dwells turn the head towards that sighting, not back to
+    the scan (matrix world 23 lost its bunny so, docs/testing.md), and its landmark dwells still scan;
+    localized (ACTIVE, no estimate yet, the robot standing), the head servo keeps centring it."""
     pilot = Pilot(CONFIG, INFO)
     pilot.handle(StateReceived(0.0, SimpleNamespace(stamp=0.0, odom=(0.0, 0.0, 0.0), head_yaw=0.0,
                                                      head_pitch=CONFIG.mission.init_pitch, walking=False, fallen=False)))
@@ -373,14 +375,20 @@ def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at_while_local
     step = pilot.handle(FrameReceived(0.2, frame(1, jpeg(cut), stamp=0.2)))
     assert not any(isinstance(o, MeasurementRecord) for o in step.outputs) and not pilot.ekf.initialized
     assert pilot.mission.phase is Phase.LOCALIZE
+    if localized:
+        pilot.mission.on_frame(0.25, object_seen=True, landmark_fix=True, localized=True)
+        assert pilot.mission.phase is Phase.ACTIVE
     blank = jpeg(np.full((H, W, 3), 128, np.uint8))
     pilot.handle(FrameReceived(0.3, frame(2, blank, stamp=0.3)))  # unseen since
     dwell = CONFIG.mission.gaze_dwell
     on_object = pilot.handle(Tick(2.0 * dwell + 0.1)).decision.head
-    scan = pilot.handle(Tick(3.0 * dwell + 0.1)).decision.head
+    other = pilot.handle(Tick(3.0 * dwell + 0.1)).decision.head
     half_fov = math.atan2(W / 2.0, INFO.intrinsics.fx)
     assert 0.8 * half_fov < on_object[0] < 1.2 * half_fov  # towards the left border, where the disc was cut
-    assert scan[0] == MODEL.head.clamp(CONFIG.mission.search_head_yaws[1], CONFIG.mission.init_pitch)[0]
+    if localized:
+        assert other == on_object
+    else:
+        assert other[0] == MODEL.head.clamp(CONFIG.mission.search_head_yaws[1], CONFIG.mission.init_pitch)[0]
 
 
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
