@@ -30,7 +30,7 @@ from nao_core.config import ConfigError
 from nao_core.geometry import camera_in_world, wrap_angle
 from nao_core.robot_model import load_robot_model
 from tests.tangents import bearing_width_from_pixels
-from tools.demo_estimation import PoseDrift, circling_cameras, circling_runs, simulate
+from tools.demo_estimation import PoseDrift, circling_cameras, circling_runs, first_views, simulate
 
 PARAMS = load_ekf_params()
 coord = st.floats(-3.0, 3.0)
@@ -178,27 +178,22 @@ def test_a_floor_contact_starts_the_range_consistently():
     term): a first view with its floor contact (phi, delta, depression with their noise) starts the
     filter at the right range with a covariance that says so (NEES in its chi-square band), where
     the radius prior alone leaves the range as uncertain as the radius."""
-    params = dataclasses.replace(PARAMS, radius_prior_std=0.03, floor_shape_std=0.0)
-    rng = np.random.default_rng(7)
-    runs, height = 400, 0.5
+    params = dataclasses.replace(PARAMS, radius_prior_std=0.02, floor_shape_std=0.0)  # 5 sigma from r = 0
+    views = first_views(params, 400, seed=7)
     nees, errors, unfloored = [], [], []
-    for _ in range(runs):
-        truth = np.array([rng.uniform(0.6, 2.0), rng.uniform(-0.5, 0.5), params.radius_prior + params.radius_prior_std * rng.standard_normal()])
-        cam = np.array([0.0, 0.0, math.atan2(truth[1], truth[0]) + rng.uniform(-0.3, 0.3)])
-        phi, delta = measure(truth, cam) + np.array([params.sigma_phi, params.sigma_delta]) * rng.standard_normal(2)
-        floor = FloorContact(floor_depression(truth, cam, height)[0] + params.floor_angle_std * rng.standard_normal(), height)
+    for view in views:
         ekf = ObjectEKF(params)
-        assert ekf.initialize(cam, phi, delta, floor).accepted
-        err = ekf.x - truth
+        assert ekf.initialize(view.cam, view.phi, view.delta, view.floor).accepted
+        err = ekf.x - view.truth
         nees.append(err @ np.linalg.solve(ekf.P, err))
-        errors.append(math.hypot(*err[:2]) / math.hypot(*truth[:2]))
+        errors.append(math.hypot(*err[:2]) / math.hypot(*view.truth[:2]))
         bare = ObjectEKF(params)
-        bare.initialize(cam, phi, delta)
-        unfloored.append(math.sqrt(np.linalg.eigvalsh(bare.P[:2, :2])[-1]) / math.hypot(*truth[:2]))
-    lo, hi = chi2.ppf([0.025, 0.975], 3 * runs) / runs
+        bare.initialize(view.cam, view.phi, view.delta)
+        unfloored.append(math.sqrt(np.linalg.eigvalsh(bare.P[:2, :2])[-1]) / math.hypot(*view.truth[:2]))
+    lo, hi = chi2.ppf([0.025, 0.975], 3 * len(views)) / len(views)
     assert lo < np.mean(nees) < hi, np.mean(nees)
-    assert np.median(errors) < 0.08  # measured 5.4 %: floor_angle_std (1.4 deg) is 5 % of the range at 0.6 m, 11 % at 2 m
-    assert np.median(unfloored) > 0.25  # without it: the radius prior's 30 %
+    assert np.median(errors) < 0.08  # measured 4.2 %: floor_angle_std (1.4 deg) is 5 % of the range at 0.6 m, 11 % at 2 m
+    assert np.median(unfloored) > 0.15  # without it: the radius prior's 20 %
 
 
 def test_initial_covariance_is_the_propagated_measurement_and_prior_noise():

@@ -4,8 +4,9 @@ Usage: ``python -m tools.demo_estimation --out DIR [--seed N]``. Writes ``estima
 (true object, camera path, estimate with its 3-sigma ellipse at several times) and
 ``estimation_errors.png`` (centre and radius errors with their 3-sigma bounds over time).
 
-The simulation helpers (:func:`circling_cameras`, :func:`simulate`, :func:`circling_runs`) are reused
-by the tests and the benchmark so that all three exercise the filter on the same synthetic ground truth.
+The simulation helpers (:func:`circling_cameras`, :func:`simulate`, :func:`circling_runs`,
+:func:`first_views`) are reused by the tests and the benchmark so that all three exercise the filter
+on the same synthetic ground truth.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from agent.ekf import EKFParams, ObjectEKF, load_ekf_params, measure
+from agent.ekf import EKFParams, FloorContact, ObjectEKF, floor_depression, load_ekf_params, measure
 
 
 def circling_cameras(
@@ -137,6 +138,38 @@ def circling_runs(
         cams = circling_cameras(truth[:2], 0.5, n_views, start=start, aim_offset=aim)
         traces.append(simulate(ObjectEKF(params), truth, cams, rng, outlier_fraction=outliers, drift=drift, weigh_pose=weigh_pose))
     return traces
+
+
+@dataclass(frozen=True)
+class FirstView:
+    """One first view of a cylinder ``truth`` (xo, yo, r) from ``cam``: its noisy bearing, width and floor contact."""
+
+    truth: np.ndarray
+    cam: np.ndarray
+    phi: float
+    delta: float
+    floor: FloorContact
+
+
+def first_views(params: EKFParams, n_views: int, seed: int, radii: Optional[tuple[float, float]] = None,
+                ranges: tuple[float, float] = (0.6, 2.0), height: float = 0.5) -> list[FirstView]:
+    """First views of a cylinder ``ranges`` m ahead (within 0.3 rad of the optical axis), from a camera
+    ``height`` m above the floor, with the noise the filter models on (phi, delta) and on the floor
+    contact's depression (``floor_angle_std``). The radius is uniform in ``radii``, or drawn from the
+    prior N(radius_prior, radius_prior_std^2)."""
+    rng = np.random.default_rng(seed)
+    views = []
+    for _ in range(n_views):
+        if radii is None:
+            r = params.radius_prior + params.radius_prior_std * rng.standard_normal()
+        else:
+            r = rng.uniform(*radii)
+        truth = np.array([rng.uniform(*ranges), rng.uniform(-0.5, 0.5), r])
+        cam = np.array([0.0, 0.0, math.atan2(truth[1], truth[0]) + rng.uniform(-0.3, 0.3)])
+        phi, delta = measure(truth, cam) + np.array([params.sigma_phi, params.sigma_delta]) * rng.standard_normal(2)
+        depression = floor_depression(truth, cam, height)[0] + params.floor_angle_std * rng.standard_normal()
+        views.append(FirstView(truth, cam, float(phi), float(delta), FloorContact(depression, height)))
+    return views
 
 
 def sigma_ellipse(ax, centre: np.ndarray, cov: np.ndarray, sigmas: float = 3.0, **style) -> None:
