@@ -154,7 +154,9 @@ def test_frames_stamped_at_the_exposure_end_are_restamped_at_what_they_show():
     # stand-in shares this process's interpreter with the bridge, so the threads of a busy process
     # lengthen those calls (alone: 10-12 ms learnt; 8 and 24 ms in two full suite runs)
     assert backend.exposure.tau == pytest.approx(0.015, abs=LEARNT_STD)
-    assert offsets and max(abs(o + 0.015) for o in offsets) < LEARNT_STD + STEP
+    # each frame within 2 LEARNT_STD, what its stamp_std allows: the frames' errors share the learnt
+    # offset's and add the probe's and the sampler's jitter (a CI run: 3 and 13 ms, 12 ms learnt)
+    assert offsets and max(abs(o + 0.015) for o in offsets) < 2.0 * LEARNT_STD
     # what the stamps are worth: an offset anywhere in +-exposure_offset_max before, LEARNT_STD after
     assert first is not None and first.stamp_std == pytest.approx(params.exposure_offset_max / math.sqrt(3.0))
     assert set(stds) == {LEARNT_STD}
