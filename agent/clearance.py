@@ -52,15 +52,12 @@ def floor_distance(silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray
     return float(math.hypot(p[0] - C[0], p[1] - C[1]))
 
 
-def floor_contact(silhouette: Silhouette, camera: CameraModel, T_WC: np.ndarray) -> Optional[FloorContact]:
-    """The floor contact of a silhouette whose base is in view (not cut by the bottom border), or None."""
-    if silhouette.touches_bottom:
+def floor_contact(silhouette: Silhouette, floor: Optional[float], height: float) -> Optional[FloorContact]:
+    """The floor contact of a silhouette whose base is in view (not cut by the bottom border), from
+    its :func:`floor_distance` ``floor`` and the camera's ``height``; None otherwise."""
+    if silhouette.touches_bottom or floor is None:
         return None
-    distance = floor_distance(silhouette, camera, T_WC)
-    if distance is None:
-        return None
-    height = float(T_WC[2, 3])
-    contact = FloorContact(math.atan2(height, distance), height)
+    contact = FloorContact(math.atan2(height, floor), height)
     return contact if contact.valid() else None  # a pose without a finite height above the floor gives none
 
 
@@ -71,10 +68,9 @@ def width_distance(delta: Optional[float], radius: float) -> Optional[float]:
     return radius / math.sin(0.5 * delta) - radius
 
 
-def image_distance(silhouette: Silhouette, delta: Optional[float], radius: float, camera: CameraModel,
-                   T_WC: np.ndarray) -> Optional[float]:
-    """The floor distance with the base in view, else the nearer of the two (module docstring), or None."""
-    floor = floor_distance(silhouette, camera, T_WC)
+def image_distance(silhouette: Silhouette, floor: Optional[float], delta: Optional[float], radius: float) -> Optional[float]:
+    """The :func:`floor_distance` ``floor`` with the base in view, else the nearer of the two (module
+    docstring), or None."""
     if floor is not None and not silhouette.touches_bottom:
         return floor
     found = [d for d in (floor, width_distance(delta, radius)) if d is not None]

@@ -114,13 +114,13 @@ import math
 from collections import Counter, deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Callable, Deque, Dict, Iterator, List, Optional, Tuple, Type
+from typing import Callable, Deque, Dict, Iterator, List, NamedTuple, Optional, Tuple, Type
 
 import cv2
 import numpy as np
 
 from agent.camera import CameraModel, optical_axis_heading
-from agent.clearance import floor_contact, image_distance
+from agent.clearance import floor_contact, floor_distance, image_distance
 from agent.keep_in import KeepIn
 from agent.coverage import Coverage, seen_fraction
 from agent.ekf import FloorContact, ObjectEKF, UpdateResult
@@ -194,6 +194,18 @@ def guarded(step: str) -> Iterator[None]:
         raise FrameStepFailed(step, exc) from exc
 
 
+class _View(NamedTuple):
+    """One view the filter was given, kept in the odometry frame O to rebuild it (``_reanchor``)."""
+
+    stamp: float
+    cam: Cam  # (cx, cy, psi) in O
+    phi: float
+    delta: Optional[float]
+    turn_rate: Optional[float]
+    stamp_variance: float  # the camera heading's variance from its stamp error, rad^2
+    floor: Optional[FloorContact]
+
+
 def _surface_point(odom: Pose, T_BC: np.ndarray, distance: float, bearing: float) -> Tuple[float, float]:
     """q_O: the point ``distance`` from the camera along ``bearing`` (robot frame), in the odometry frame."""
     T_OC = camera_in_world(tuple(float(v) for v in odom), T_BC)
@@ -229,8 +241,7 @@ class Pilot:
         self.anchored = False
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.dropped: Counter = Counter()  # frames dropped, by the step that raised
-        # (stamp, cam, phi, delta, turn rate, stamp heading variance, floor contact) in O
-        self._views: Deque[Tuple[float, Cam, float, Optional[float], Optional[float], float, Optional[FloorContact]]] = deque(maxlen=VIEWS_KEPT)
+        self._views: Deque[_View] = deque(maxlen=VIEWS_KEPT)
         self._last_camera: Optional[Tuple[float, float]] = None  # (stamp, camera heading in O) of the last frame
         self.relocalized = 0  # filters rebuilt after a fix moved the pose by more than relocalize_shift
         self._t_plan: Optional[float] = None
@@ -376,11 +387,12 @@ class Pilot:
                 self._sighting = self._last_sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
                 if silhouette.touches_bottom:
                     self._base_pitch = meta.head_pitch + self._bottom_row_angle
-                floor = floor_contact(silhouette, self.camera, T_WC)
+                base_distance = floor_distance(silhouette, self.camera, T_WC)
+                floor = floor_contact(silhouette, base_distance, float(T_WC[2, 3]))
                 self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
                                    self.ekf.x if self.ekf.initialized else None)
                 radius = self.ekf.x[2] if self.ekf.initialized else self.config.ekf.radius_prior
-                distance = image_distance(silhouette, measurement.delta, float(radius), self.camera, T_WC)
+                distance = image_distance(silhouette, base_distance, measurement.delta, float(radius))
                 if distance is not None:
                     near = _surface_point(meta.odom, T_BC, distance, measurement.azimuth - self.pose[2])
                     if not (silhouette.touches_bottom and self._near is not None
@@ -427,7 +439,7 @@ class Pilot:
 
     def _filter(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, cam_odom: Cam, phi: float, delta: Optional[float],
                 cam_cov: Optional[np.ndarray], turn_rate: Optional[float], stamp_variance: float, floor: Optional[FloorContact]) -> None:
-        self._views.append((stamp, cam_odom, phi, delta, turn_rate, stamp_variance, floor))
+        self._views.append(_View(stamp, cam_odom, phi, delta, turn_rate, stamp_variance, floor))
         result = self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, floor, cam_cov)
         step.outputs.append(MeasurementRecord(t, seq, cam, float(phi), None if delta is None else float(delta),
                                               result.accepted, None if result.nis is None else float(result.nis), result.reason))
@@ -473,9 +485,10 @@ class Pilot:
         self._last_capture = None
         if relocated:
             self.coverage = Coverage(self.config.planner.coverage, self.camera.hfov)
-        for stamp, (cx, cy, psi), phi, delta, turn_rate, stamp_variance, floor in self._views:
+        for view in self._views:
+            cx, cy, psi = view.cam
             cam = (x0 + c * cx - s * cy, y0 + s * cx + c * cy, wrap_angle(psi + theta))
-            self._observe(stamp, cam, phi, delta, turn_rate, stamp_variance, floor)  # phi is measured from psi: a rigid move leaves it
+            self._observe(view.stamp, cam, view.phi, view.delta, view.turn_rate, view.stamp_variance, view.floor)  # phi is measured from psi: a rigid move leaves it
             if relocated:
                 self.coverage.add(np.asarray(cam))
 

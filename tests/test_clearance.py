@@ -11,7 +11,7 @@ import pytest
 from scipy.stats import chi2
 
 from agent.camera import CameraModel, optical_axis_heading
-from agent.clearance import floor_contact, image_distance, width_distance
+from agent.clearance import floor_contact, floor_distance, image_distance, width_distance
 from agent.ekf import ObjectEKF, load_ekf_params
 from agent.perception import PerceptionParams, extract_silhouette, measure_object
 from nao_core.config import CONFIG_DIR, load
@@ -56,7 +56,7 @@ def test_a_figure_wider_than_its_estimate_reads_at_its_true_distance():
     misread = 0
     for silhouette, measurement, T_WC, centre, radius, camera in seen:
         assert not silhouette.touches_bottom
-        d = image_distance(silhouette, measurement.delta, r_estimate, camera, T_WC)
+        d = image_distance(silhouette, floor_distance(silhouette, camera, T_WC), measurement.delta, r_estimate)
         assert centre - radius - 0.03 <= d <= centre + 0.03, (d, centre, radius)
         width_only = width_distance(measurement.delta, r_estimate)
         misread += width_only is not None and width_only < 0.5
@@ -71,8 +71,8 @@ def test_with_its_base_cut_the_floor_is_an_upper_bound_and_the_width_the_distanc
     assert seen
     for silhouette, _, T_WC, centre, radius, camera in seen:
         surface = centre - radius
-        assert image_distance(silhouette, None, radius, camera, T_WC) > surface + 0.1  # the floor alone: too far
-        d = image_distance(silhouette, 2.0 * math.asin(radius / centre), radius, camera, T_WC)
+        assert image_distance(silhouette, floor_distance(silhouette, camera, T_WC), None, radius) > surface + 0.1  # the floor alone: too far
+        d = image_distance(silhouette, floor_distance(silhouette, camera, T_WC), 2.0 * math.asin(radius / centre), radius)
         assert d == pytest.approx(surface, abs=1e-9)
 
 
@@ -87,7 +87,7 @@ def test_a_first_view_with_its_floor_contact_starts_the_filter_near_the_object(n
     gate, tolerance = chi2.ppf(0.997, 2), 0.25 if name == "figure" else 0.12
     unfloored = []
     for silhouette, measurement, T_WC, centre, _, camera in views(name, distance):
-        floor = floor_contact(silhouette, camera, T_WC)
+        floor = floor_contact(silhouette, floor_distance(silhouette, camera, T_WC), T_WC[2, 3])
         assert floor is not None and measurement.delta is not None
         cam = np.array([T_WC[0, 3], T_WC[1, 3], optical_axis_heading(T_WC)])
         ekf = ObjectEKF(EKF)
