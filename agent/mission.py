@@ -139,6 +139,7 @@ class Mission:
         self._t_arrived: Optional[float] = None  # when the head got there (its dwell starts)
         self._t_turn: Optional[float] = None  # when the scan ended and the turn in place began
         self.landmark_frames = 0  # frames in which landmarks were detected (fix or not)
+        self.flooded_frames = 0  # frames the object's colour filled from side to side (not a sighting)
         self.frame_failures = 0  # frames in a row a per-frame step failed on
 
     # events -----------------------------------------------------------------------------------
@@ -150,12 +151,14 @@ class Mission:
             self._end(t, Outcome.FALLEN, "the robot fell")
 
     def on_frame(self, t: float, object_seen: bool, landmark_fix: bool, localized: bool, landmarks_seen: bool = False,
-                 position_std: float = 0.0) -> None:
+                 position_std: float = 0.0, flooded: bool = False) -> None:
         """One processed frame: was the object measured, did landmarks fix the pose, is a pose
-        known, were landmarks detected at all, and how much the pose is worth (m)."""
+        known, were landmarks detected at all, how much the pose is worth (m), and did the object's
+        colour fill the image from side to side (then the object is not seen; the reasons say so)."""
         self.frame_failures = 0
         self._position_std = position_std
         self.landmark_frames += landmarks_seen or landmark_fix
+        self.flooded_frames += flooded
         if object_seen:
             self._t_object = t
         if landmark_fix:
@@ -209,12 +212,13 @@ class Mission:
             return self._search(t)
         if self.phase is Phase.LOCALIZE:
             if t - self._t_object > p.object_lost_timeout:
-                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s while waiting for a landmark fix")
+                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s while waiting for a landmark fix"
+                          + self._flood_note())
             else:
                 return Decision(self.phase, walk=(0.0, 0.0, 0.0))
         if self.phase is Phase.ACTIVE:
             if self._t_object is None or t - self._t_object > p.object_lost_timeout:
-                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s")
+                self._end(t, Outcome.OBJECT_LOST, f"object not seen for {p.object_lost_timeout:g} s" + self._flood_note())
             elif self._t_fix is None or t - self._t_fix > p.landmarks_lost_timeout:
                 self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s")
             elif self._position_std > p.landmarks_lost_std:
@@ -247,11 +251,17 @@ class Mission:
             self._t_turn = t
         if t - self._t_turn >= p.search_turn_duration:
             self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not seen in a head scan and {p.search_max_turns:g} turns "
-                      f"(landmarks detected in {self.landmark_frames} frames)")
+                      f"(landmarks detected in {self.landmark_frames} frames)" + self._flood_note())
             return self.tick(t)
         return Decision(self.phase, walk=(0.0, 0.0, p.search_turn_rate), head=(0.0, p.init_pitch))
 
     # helpers ----------------------------------------------------------------------------------
+
+    def _flood_note(self) -> str:
+        if not self.flooded_frames:
+            return ""
+        return (f"; the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall or "
+                f"something large has its colour (docs/perception.md, \"Colours\")")
 
     def _head_centred(self) -> bool:
         return self._head_at(0.0, self.params.init_pitch)

@@ -132,6 +132,12 @@ class Silhouette:
         """Not cut by any border: the whole silhouette, so its width is the object's."""
         return not self.cut
 
+    @property
+    def spans_image(self) -> bool:
+        """Cut by both the left and the right border: the object's colour fills the view from side to
+        side, a floor or a wall of that colour (the mission never comes that close to its object)."""
+        return self.touches_left and self.touches_right
+
 
 @dataclass(frozen=True)
 class ObjectMeasurement:

@@ -21,8 +21,12 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   ``pixel_sigma``, ``blur_sigma`` and ``exposure``;
 * the camera on its mount: a roll and a pitch uniform within +-``mount_error`` that
   the reported camera transform omits (agent/camera_tilt.py learns them);
-* drawn last, the shutter: an exposure time U(``shutter``) over which the camera's rotation
-  blurs the frame (docs/simulator.md, "The camera image").
+* the shutter: an exposure time U(``shutter``) over which the camera's rotation blurs the frame
+  (docs/simulator.md, "The camera image");
+* drawn last, the room's looks: a floor and a wall paint from ``floor_colors`` and ``wall_colors``
+  (colours of real rooms that none of the perception's colour classes takes), and the light from
+  an azimuth U(-pi, pi) at an elevation U(``light_elevation``) above the horizon, with an ambient
+  share U(``ambient``).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -39,7 +43,7 @@ import numpy as np
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import Pose
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
-from nao_sim.scenarios import Scenario, SimConfig, load_sim_config
+from nao_sim.scenarios import Room, Scenario, SimConfig, load_sim_config
 from nao_sim.world import SimWorld
 
 
@@ -70,10 +74,16 @@ class Randomizer:
     exposure: Tuple[float, float] = field(metadata=bounds(0.1, 3.0))  # mean brightness factor
     mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
     shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
+    floor_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))  # BGR paints to draw from
+    wall_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))
+    light_elevation: Tuple[float, float] = field(metadata=bounds(0.1, math.pi / 2))  # rad above the horizon
+    ambient: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
             raise ValueError("randomizer: 'layouts' and 'objects' must not be empty")
+        if not self.floor_colors or not self.wall_colors:
+            raise ValueError("randomizer: 'floor_colors' and 'wall_colors' must not be empty")
 
 
 def load_randomizer() -> Randomizer:
@@ -104,7 +114,9 @@ class WorldSpec:
                 "bare_naoqi": self.bare_naoqi, "pixel_sigma": round(noise.pixel_sigma, 2),
                 "blur_sigma": round(noise.blur_sigma, 2), "exposure": round(noise.exposure, 2),
                 "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error],
-                "shutter_ms": round(1e3 * noise.shutter, 1)}
+                "shutter_ms": round(1e3 * noise.shutter, 1), "floor_color": list(self.config.room.floor_color),
+                "wall_color": list(self.config.room.wall_color), "light": [round(x, 2) for x in self.config.room.light],
+                "ambient": round(self.config.room.ambient, 2)}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -115,6 +127,16 @@ def _intrinsics(intr: CameraIntrinsics, rng: np.random.Generator, focal: float, 
     sx, sy, su, sv = rng.choice([-1.0, 1.0], 4)
     return dataclasses.replace(intr, fx=float(intr.fx * (1.0 + sx * focal)), fy=float(intr.fy * (1.0 + sy * focal)),
                                cx=float(intr.cx + su * principal), cy=float(intr.cy + sv * principal))
+
+
+def _looks(room: Room, r: Randomizer, rng: np.random.Generator) -> Room:
+    """The room with a floor and wall paint and a light drawn from ``r`` (module docstring)."""
+    floor = r.floor_colors[int(rng.integers(len(r.floor_colors)))]
+    wall = r.wall_colors[int(rng.integers(len(r.wall_colors)))]
+    azimuth, elevation = rng.uniform(-math.pi, math.pi), rng.uniform(*r.light_elevation)
+    light = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation))
+    return dataclasses.replace(room, floor_color=tuple(map(float, floor)), wall_color=tuple(map(float, wall)),
+                               light=light, ambient=float(rng.uniform(*r.ambient)))
 
 
 def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optional[SimConfig] = None,
@@ -156,7 +178,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
                                  blur_sigma=float(rng.uniform(*r.blur_sigma)), exposure=float(rng.uniform(*r.exposure)))
     sensor = dataclasses.replace(sensor, mount_error=tuple(float(m) for m in rng.uniform(-1.0, 1.0, 2) * r.mount_error))
     sensor = dataclasses.replace(sensor, shutter=float(rng.uniform(*r.shutter)))  # drawn after the rest: their draws stay
-    config = dataclasses.replace(config, noise=sensor)
+    config = dataclasses.replace(config, noise=sensor, room=_looks(config.room, r, rng))
     return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
                      true_robot, (x, y, heading), bare)
 

@@ -6,7 +6,9 @@ Background, per pixel by ray casting (rays precomputed once, distortion removed)
     walls:  t_x = (sign(d_x) h - c_x) / d_x,  t_y = (sign(d_y) h - c_y) / d_y,  t_w = min(t_x, t_y),
 
 a pixel shows the floor when t_f < t_w, else the wall (the ceiling above ``wall_height``); the hit
-point c + t d indexes a periodic texture (1 m floor tiles, painted walls with a skirting board).
+point c + t d indexes a periodic texture (1 m floor tiles, painted walls with a skirting board), in
+the room's ``floor_color`` and ``wall_color``. Shading is Lambert's law under the room's ``light``
+(``Light``): k = ambient + (1 - ambient) max(0, n . l).
 
 Foreground, in painter's order (farthest first, by the distance from the camera to each item's
 centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-pixel precision:
@@ -56,11 +58,10 @@ from nao_sim.scenarios import Room, Scenario
 NEAR = 0.02  # m, near clipping plane
 SHIFT = 4  # sub-pixel bits of cv2 polygon filling
 SUPERSAMPLE = 8  # sub-pixels per pixel side for the area-exact anti-aliasing of polygons
-LIGHT = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])  # direction towards the light, world
-AMBIENT = 0.55
 TEXELS_PER_M = 256  # floor and wall textures repeat every metre
 MOTION_SAMPLES = 24  # most shifted copies averaged for the motion blur
 BOARD_MARGIN = 0.25  # white quiet zone around a marker, fraction of its side
+BOARD_AMBIENT = 0.85  # a matte white board facing into the room is lit from all round
 POST_RADIUS = 0.01  # m
 COLOURS_BGR = {
     "green": (60, 170, 40),
@@ -71,16 +72,27 @@ COLOURS_BGR = {
 }
 
 
-def _lambert(normals: np.ndarray, ambient: float = AMBIENT) -> np.ndarray:
-    """Lambert's factor ambient + (1 - ambient) max(0, n . l) of unit normals (..., 3), or of
-    horizontal ones (..., 2)."""
-    return ambient + (1.0 - ambient) * np.maximum(0.0, normals @ LIGHT[: normals.shape[-1]])
+@dataclass(frozen=True)
+class Light:
+    """One distant light and an ambient share (the room's ``light`` and ``ambient``), by Lambert's law."""
 
+    direction: np.ndarray  # unit, towards the light, world
+    ambient: float
 
-def _shade(color: Sequence[int], normal: np.ndarray, ambient: float = AMBIENT) -> Tuple[int, int, int]:
-    """Lambert: colour * (ambient + (1 - ambient) max(0, n . l))."""
-    k = float(_lambert(np.asarray(normal, dtype=float), ambient))
-    return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
+    @classmethod
+    def of(cls, room: Room) -> "Light":
+        direction = np.asarray(room.light, dtype=float)
+        return cls(direction / np.linalg.norm(direction), room.ambient)
+
+    def factor(self, normals: np.ndarray, ambient: Optional[float] = None) -> np.ndarray:
+        """ambient + (1 - ambient) max(0, n . l) of unit normals (..., 3), or of horizontal ones (..., 2)."""
+        a = self.ambient if ambient is None else ambient
+        return a + (1.0 - a) * np.maximum(0.0, normals @ self.direction[: normals.shape[-1]])
+
+    def shade(self, color: Sequence[int], normal: np.ndarray, ambient: Optional[float] = None) -> Tuple[int, int, int]:
+        """The colour times its Lambert factor."""
+        k = float(self.factor(np.asarray(normal, dtype=float), ambient))
+        return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
 
 
 class _View:
@@ -181,17 +193,17 @@ def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Pain
 class _Solid:
     """A convex part with flat-shaded faces: a box (six faces)."""
 
-    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int]):
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light):
         self.points_W = points_W  # the 4 bottom corners, then the 4 top ones
         self.centre = points_W.mean(axis=0)
         self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
         bottom, top = points_W[:4], points_W[4:]
-        self.hull_color = _shade(color, np.zeros(3))
+        self.hull_color = light.shade(color, np.zeros(3))
         self.faces = []
         for face in [top, bottom] + [np.array([bottom[i], bottom[(i + 1) % 4], top[(i + 1) % 4], top[i]]) for i in range(4)]:
             normal = np.cross(face[1] - face[0], face[2] - face[0])
             normal *= np.sign(np.dot(normal, face.mean(axis=0) - self.centre)) / np.linalg.norm(normal)
-            self.faces.append((face, normal, _shade(color, normal)))
+            self.faces.append((face, normal, light.shade(color, normal)))
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         """The hull first (no seams between faces), then every face turned towards the camera."""
@@ -204,7 +216,7 @@ class _Solid:
 class _MeshSolid:
     """A triangle mesh part (nao_sim/meshes.py), flat-shaded per triangle."""
 
-    def __init__(self, vertices_W: np.ndarray, faces: np.ndarray, color: Tuple[int, int, int]):
+    def __init__(self, vertices_W: np.ndarray, faces: np.ndarray, color: Tuple[int, int, int], light: Light):
         self.vertices_W = vertices_W
         self.faces = faces
         self.centre = 0.5 * (vertices_W.min(axis=0) + vertices_W.max(axis=0))
@@ -215,7 +227,7 @@ class _MeshSolid:
         keep = length > 0.0  # degenerate triangles cover no pixel
         self.faces, tri, self.normals = faces[keep], tri[keep], normals[keep] / length[keep, None]
         self.centroids = tri.mean(axis=1)
-        k = _lambert(self.normals)
+        k = light.factor(self.normals)
         self.colors = np.minimum(255, np.rint(np.outer(k, color))).astype(np.uint8)
 
     def draw(self, image: np.ndarray, view: _View) -> None:
@@ -257,15 +269,16 @@ class _Cylinder:
     approach to the axis for the rim's anti-aliased pixels whose ray misses it), so the light varies
     across the side as on a real can; the top cap over it, in its own shade, when seen from above."""
 
-    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int]):
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light):
         self.points_W = points_W  # bottom ring, then top ring
+        self.light = light
         self.centre = points_W.mean(axis=0)
         self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
         self.top = points_W[len(points_W) // 2:]
         self.axis = self.top[:, :2].mean(axis=0)
         self.r = float(np.linalg.norm(self.top[0, :2] - self.axis))
         self.color = np.float32(color)
-        self.top_color = _shade(color, np.array([0.0, 0.0, 1.0]))
+        self.top_color = light.shade(color, np.array([0.0, 0.0, 1.0]))
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         _fill_hull(image, view, self.points_W, lambda *roi: self._side(view, *roi))
@@ -283,7 +296,7 @@ class _Cylinder:
         t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a  # the nearer crossing, or the closest approach
         p = c + t[..., None] * d
         n = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
-        k = _lambert(n)
+        k = self.light.factor(n)
         return np.minimum(255.0, self.color * k[..., None].astype(np.float32))
 
 
@@ -301,9 +314,10 @@ class _MarkerBoard:
     corners_W: np.ndarray  # 4 x 3, cv2.aruco order
     board_W: np.ndarray  # 4 x 3
     texture: np.ndarray  # marker image, black square = whole image
+    board_color: Tuple[int, int, int]  # the white board in its light
 
     @classmethod
-    def build(cls, lm: Landmark, texels: int = 120) -> "_MarkerBoard":
+    def build(cls, lm: Landmark, light: Light, texels: int = 120) -> "_MarkerBoard":
         corners = lm.aruco_corners()
         m = BOARD_MARGIN * lm.size
         right = (corners[1] - corners[0]) / lm.size
@@ -312,7 +326,8 @@ class _MarkerBoard:
         board = np.array([top_left, top_right, top_right * floor, top_left * floor])
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, lm.dictionary))
         texture = cv2.aruco.generateImageMarker(dictionary, int(lm.id), texels, borderBits=1)
-        return cls(lm, corners, board, cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR))
+        return cls(lm, corners, board, cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR),
+                   light.shade((240, 240, 240), lm.normal, ambient=max(light.ambient, BOARD_AMBIENT)))
 
     @property
     def centre(self) -> np.ndarray:
@@ -327,7 +342,7 @@ class _MarkerBoard:
         if not front:
             _fill_hull(image, view, self.board_W, (150, 150, 150))
             return
-        _fill_hull(image, view, self.board_W, _shade((240, 240, 240), self.landmark.normal, ambient=0.85))
+        _fill_hull(image, view, self.board_W, self.board_color)
         corners_C = view.to_camera(self.corners_W)
         if (corners_C[:, 2] < NEAR).any() or (view.to_camera(self.board_W)[:, 2] < NEAR).all():
             return
@@ -397,13 +412,13 @@ def _textures(room: Room) -> Tuple[np.ndarray, int]:
     yy, xx = np.mgrid[0:S, 0:S]
     tile = ((xx // (S // 2)) + (yy // (S // 2))) % 2
     floor = np.empty((S, S, 3), np.float32)
-    floor[:] = np.array([120.0, 125.0, 130.0])
+    floor[:] = np.array(room.floor_color)
     floor += (tile * 14.0)[..., None] + rng.normal(0.0, 6.0, (S, S, 1))
     grout = (xx % (S // 2) < 2) | (yy % (S // 2) < 2)
     floor[grout] = (80.0, 80.0, 85.0)
     wall_rows = int(math.ceil(room.wall_height * S)) + 1
     wall = np.empty((wall_rows, S, 3), np.float32)
-    wall[:] = np.array([190.0, 205.0, 215.0])
+    wall[:] = np.array(room.wall_color)
     wall += rng.normal(0.0, 4.0, (1, S, 1)) + rng.normal(0.0, 2.0, (wall_rows, S, 1))
     wall[: int(0.08 * S)] = (70.0, 85.0, 100.0)  # skirting board
     wall[-1] = (235.0, 235.0, 235.0)  # ceiling
@@ -434,15 +449,16 @@ class Renderer:
         normalized = cv2.undistortPoints(pix, intrinsics.K, np.asarray(intrinsics.dist, dtype=float)).reshape(-1, 2)
         self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
+        light = Light.of(room)
         self._items: List = [
-            _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color) if p.shape == "mesh"
-            else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color) if p.shape == "cylinder"
-            else _Solid(p.world_points(scenario.position, scenario.yaw), scenario.color)
+            _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color, light) if p.shape == "mesh"
+            else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color, light) if p.shape == "cylinder"
+            else _Solid(p.world_points(scenario.position, scenario.yaw), scenario.color, light)
             for p in scenario.parts
         ]
         for lm in landmarks.landmarks:
             if lm.kind == "aruco":
-                self._items.append(_MarkerBoard.build(lm))
+                self._items.append(_MarkerBoard.build(lm, light))
             else:
                 if lm.color not in COLOURS_BGR:
                     known = sorted(COLOURS_BGR)

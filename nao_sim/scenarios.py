@@ -152,8 +152,18 @@ class Scenario:
 
 @dataclass(frozen=True)
 class Room:
+    """The room's size and looks: its floor and wall paint (BGR, 0-255) and its light (nao_sim/render.py)."""
+
     half_size: float = field(metadata=bounds(1.0, 50.0))  # walls at x, y = +-half_size, m
     wall_height: float = field(metadata=bounds(0.5, 10.0))  # m
+    floor_color: Tuple[float, float, float] = field(default=(120.0, 125.0, 130.0), metadata=bounds(0.0, 255.0))
+    wall_color: Tuple[float, float, float] = field(default=(190.0, 205.0, 215.0), metadata=bounds(0.0, 255.0))
+    light: Tuple[float, float, float] = field(default=(0.3, -0.4, 0.87), metadata=bounds(-1.0, 1.0))  # towards the light, world
+    ambient: float = field(default=0.55, metadata=bounds(0.0, 1.0))  # share of the light every surface gets
+
+    def __post_init__(self) -> None:
+        if not self.light[2] > 0.0 or not math.hypot(*self.light) > 0.0:
+            raise ValueError(f"room.light must point upwards (positive z), got {list(self.light)}")
 
 
 @dataclass(frozen=True)

@@ -381,7 +381,9 @@ class Pilot:
         with guarded("perception"):
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
-            measurement = None if silhouette is None else measure_object(silhouette, self.camera, T_WC, self.config.perception)
+            flooded = silhouette is not None and silhouette.spans_image
+            measurement = None if silhouette is None or flooded else measure_object(silhouette, self.camera, T_WC,
+                                                                                   self.config.perception)
             self._sighting = self._base_pitch = floor = None
             if measurement is not None:
                 self._sighting = self._last_sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
@@ -411,7 +413,7 @@ class Pilot:
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
-                              self.localizer.position_std() if self.anchored else 0.0)
+                              self.localizer.position_std() if self.anchored else 0.0, flooded)
 
     def _camera_covariance(self, cam: Cam) -> Optional[np.ndarray]:
         """Covariance of (cx, cy, psi) from the localizer's pose covariance at this capture (with the

@@ -3,7 +3,8 @@
 * A triangle mesh renders as the exact union of its projected triangles: every pixel where the
   rendered silhouette and ray-cast truth disagree lies on the truth's outline.
 * ``Scenario.contains`` (the truth of IoU) against analytic solids.
-* ``random_world`` draws every axis of the matrix inside its configured ranges, deterministically.
+* ``random_world`` draws every axis of the matrix inside its configured ranges, deterministically,
+  and paints its rooms in no colour the perception looks for.
 * Fixed-seed missions through the NAOqi stand-in (``tools.matrix.run_mission``) in worlds that
   differ in layout, object size and shape, and sway; each asserts the outcome, centre and radius
   error, model IoU, closest approach, the robot at rest at the end and how soon it was stopped.
@@ -21,6 +22,7 @@ import cv2
 import numpy as np
 import pytest
 
+from agent.perception import PerceptionParams, color_mask
 from agent.planner import load_planner_params
 from nao_bridge.bridge import BridgeParams
 from nao_core.config import CONFIG_DIR, load
@@ -35,6 +37,7 @@ from tests.conftest import CI_SEED
 
 ROBOT = load_robot_model()
 CONFIG = load_sim_config()
+PERCEPTION = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
 
 
 def ray_cast_mask(scenario, intr, T_WC: np.ndarray, box: tuple) -> np.ndarray:
@@ -162,8 +165,28 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
         for name in ("pixel_sigma", "blur_sigma", "exposure", "shutter"):
             low, high = getattr(r, name)
             assert low <= getattr(s.config.noise, name) <= high, name
+        looks = s.config.room
+        assert looks.floor_color in r.floor_colors and looks.wall_color in r.wall_colors
+        assert math.sin(r.light_elevation[0]) - 1e-9 <= looks.light[2] <= math.sin(r.light_elevation[1]) + 1e-9
+        assert math.hypot(*looks.light) == pytest.approx(1.0) and r.ambient[0] <= looks.ambient <= r.ambient[1]
+    assert len({s.config.room for s in specs}) == len(specs)  # every world looks different
+    assert {s.config.room.floor_color for s in specs} == set(r.floor_colors)
     world = RandomWorld(specs[0])
     assert world.true_pose() == pytest.approx(specs[0].start) and world.truth()["odom_origin"] == pytest.approx(list(specs[0].start))
+
+
+@pytest.mark.parametrize("paint", ["floor_colors", "wall_colors"])
+def test_the_randomized_rooms_are_painted_in_no_colour_the_perception_looks_for(paint):
+    """A floor or wall in the object's colour, or a landmark's, is a room the colour segmentation
+    cannot work in (docs/perception.md): every paint, from the darkest shade the randomized light and
+    exposure give it to the brightest, stays out of every colour class."""
+    r = load_randomizer()
+    darkest = r.ambient[0] * r.exposure[0]
+    for bgr in getattr(r, paint):
+        shades = np.clip(np.outer(np.linspace(darkest, r.exposure[1], 64), bgr), 0, 255).astype(np.uint8)
+        hsv = cv2.cvtColor(shades.reshape(1, -1, 3), cv2.COLOR_BGR2HSV)
+        taken = [name for name, colour in PERCEPTION.colors.items() if color_mask(hsv, colour).any()]
+        assert not taken, (bgr, taken)
 
 
 # --- missions -------------------------------------------------------------------------------------

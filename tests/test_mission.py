@@ -78,6 +78,25 @@ def follow_head(mission: Mission, t: float, t_end: float, lag: float = 0.0, head
     return decision
 
 
+def test_an_object_colour_filling_the_frames_is_named_when_the_object_is_not_found():
+    """Frames whose object colour filled the image from side to side (a floor of that colour) are no
+    sighting: the search goes on and its failure says how many there were and what it means."""
+    mission = searching_mission()
+    for k in range(4):
+        mission.on_frame(0.1 * (k + 1), object_seen=False, landmark_fix=True, localized=True, flooded=True)
+    assert mission.phase is Phase.SEARCH and mission.flooded_frames == 4
+    d = follow_head(mission, 0.0, len(P.search_head_yaws) * (P.search_dwell + DT) + P.search_turn_duration + 2 * DT)
+    assert d.outcome is Outcome.OBJECT_NOT_FOUND
+    assert "object's colour filled 4 frames from side to side" in d.reason and "floor" in d.reason
+
+
+def test_object_lost_says_when_the_object_colour_filled_the_frames():
+    mission, t = active_mission()
+    mission.on_frame(t + 0.1, object_seen=False, landmark_fix=True, localized=True, flooded=True)
+    _, d = run_until(mission, t, t + P.object_lost_timeout + 1.0)
+    assert d.outcome is Outcome.OBJECT_LOST and "filled 1 frames" in d.reason
+
+
 def test_search_scans_head_then_turns_then_gives_up():
     mission = Mission(P)
     mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)

@@ -391,6 +391,33 @@ def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at(localized):
         assert other[0] == MODEL.head.clamp(CONFIG.mission.search_head_yaws[1], CONFIG.mission.init_pitch)[0]
 
 
+def test_a_floor_of_the_objects_colour_is_no_sighting_and_is_counted():
+    """A frame whose lower half is a cherry-red floor (the object's colour class, cut by both side
+    borders) starts nothing: no measurement, the search goes on, and the mission counts the frame for
+    its failure reason (docs/perception.md, "Colours"); the same frame with the object in front of a
+    grey floor is a sighting."""
+    def searching() -> Pilot:
+        pilot = Pilot(CONFIG, INFO)
+        pilot.handle(StateReceived(0.0, SimpleNamespace(stamp=0.0, odom=(0.0, 0.0, 0.0), head_yaw=0.0,
+                                                         head_pitch=CONFIG.mission.init_pitch, walking=False, fallen=False)))
+        pilot.handle(Tick(0.0))
+        pilot.handle(Tick(0.1))
+        assert pilot.mission.phase is Phase.SEARCH
+        return pilot
+
+    floor = np.full((H, W, 3), 200, np.uint8)
+    floor[H // 2:] = (55, 75, 140)
+    pilot = searching()
+    step = pilot.handle(FrameReceived(0.2, frame(1, jpeg(floor), stamp=0.2)))
+    assert not any(isinstance(o, MeasurementRecord) for o in step.outputs)
+    assert pilot.mission.phase is Phase.SEARCH and pilot.mission.flooded_frames == 1
+    grey = np.full((H, W, 3), 128, np.uint8)
+    cv2.circle(grey, (W // 2, H // 2), 20, (55, 75, 140), -1)
+    pilot = searching()
+    pilot.handle(FrameReceived(0.2, frame(1, jpeg(grey), stamp=0.2)))
+    assert pilot.mission.phase is Phase.LOCALIZE and pilot.mission.flooded_frames == 0
+
+
 def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_applied():
     """A map with ArUco markers: the first ACTIVE ticks stand still (walking fixes would pass the
     sway for a calibration error), the head alternating between the object and the directions

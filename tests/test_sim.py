@@ -16,7 +16,7 @@ from nao_bridge.sim_backend import SimBackend
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import load_robot_model, nao_to_optical
-from nao_sim.render import AMBIENT, LIGHT, NEAR
+from nao_sim.render import NEAR, Light
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
@@ -208,7 +208,8 @@ def test_a_cylinder_side_is_shaded_by_the_normal_at_each_column(azimuth):
     a, b, q = np.sum(d * d, axis=1), 2.0 * d @ c, c @ c - r * r
     t = (-b - np.sqrt(b * b - 4.0 * a * q)) / (2.0 * a)  # the nearer crossing of the side
     normals = np.column_stack([(c + t[:, None] * d) / r, np.zeros(len(columns))])
-    shade = AMBIENT + (1.0 - AMBIENT) * np.maximum(0.0, normals @ LIGHT)
+    light = Light.of(world.config.room)
+    shade = light.ambient + (1.0 - light.ambient) * np.maximum(0.0, normals @ light.direction)
     ratio = frame.image[row, columns, 2] / shade
     assert shade.max() / shade.min() > 1.1  # the view shows lit and shaded parts of the side
     assert ratio.std() / ratio.mean() < 0.02, (ratio.std() / ratio.mean())
