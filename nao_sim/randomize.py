@@ -168,8 +168,8 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     low, high = np.sort(rng.uniform(*r.latency, 2))
     noise = dataclasses.replace(base.noise, latency=(float(low), float(high)), drop_rate=float(rng.uniform(*r.drop_rate)),
                                 clock_offset=float(rng.uniform(*r.clock_offset)))
-    config = dataclasses.replace(base, landmarks=layout.file, room=dataclasses.replace(base.room, half_size=layout.half_size),
-                                 dynamics=dyn, noise=noise, scenarios={object_name: scenario})
+    config = dataclasses.replace(base.with_layout(layout.file, layout.half_size), dynamics=dyn, noise=noise,
+                                 scenarios={object_name: scenario})
     camera = robot.camera
     resolutions = {k: _intrinsics(v, rng, r.focal_error, r.principal_error) for k, v in camera.resolutions.items()}
     true_robot = dataclasses.replace(robot, camera=dataclasses.replace(camera, resolutions=resolutions))

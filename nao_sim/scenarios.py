@@ -21,6 +21,7 @@ The robot starts at a seeded distance in ``start_distance`` from the object, at 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -156,10 +157,10 @@ class Room:
 
     half_size: float = field(metadata=bounds(1.0, 50.0))  # walls at x, y = +-half_size, m
     wall_height: float = field(metadata=bounds(0.5, 10.0))  # m
-    floor_color: Tuple[float, float, float] = field(default=(120.0, 125.0, 130.0), metadata=bounds(0.0, 255.0))
-    wall_color: Tuple[float, float, float] = field(default=(190.0, 205.0, 215.0), metadata=bounds(0.0, 255.0))
-    light: Tuple[float, float, float] = field(default=(0.3, -0.4, 0.87), metadata=bounds(-1.0, 1.0))  # towards the light, world
-    ambient: float = field(default=0.55, metadata=bounds(0.0, 1.0))  # share of the light every surface gets
+    floor_color: Tuple[float, float, float] = field(metadata=bounds(0.0, 255.0))  # BGR
+    wall_color: Tuple[float, float, float] = field(metadata=bounds(0.0, 255.0))  # BGR
+    light: Tuple[float, float, float] = field(metadata=bounds(-1.0, 1.0))  # towards the light, world
+    ambient: float = field(metadata=bounds(0.0, 1.0))  # share of the light every surface gets
 
     def __post_init__(self) -> None:
         if not self.light[2] > 0.0 or not math.hypot(*self.light) > 0.0:
@@ -227,6 +228,10 @@ class SimConfig:
     @property
     def landmark_path(self) -> Path:
         return CONFIG_DIR / self.landmarks
+
+    def with_layout(self, landmarks: str, half_size: float) -> "SimConfig":
+        """This world with the landmark map ``landmarks`` in a room of ``half_size`` m (its looks kept)."""
+        return dataclasses.replace(self, landmarks=landmarks, room=dataclasses.replace(self.room, half_size=half_size))
 
 
 def load_sim_config(files: Sequence[Union[str, Path]] = ()) -> SimConfig:

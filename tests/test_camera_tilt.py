@@ -17,7 +17,7 @@ from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_y
 from nao_core.landmark_map import LandmarkMap
-from nao_sim.scenarios import Room, load_sim_config
+from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
 
@@ -52,8 +52,7 @@ def test_standing_fixes_learn_the_camera_tilt_on_rendered_frames(params, robot):
     the mission this matters in is a sparse layout's, docs/landmarks.md.)"""
     truth_tilt = (math.radians(0.5), math.radians(-0.7))
     base = load_sim_config()
-    config = dataclasses.replace(base, landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0),
-                                 noise=dataclasses.replace(base.noise, mount_error=truth_tilt))
+    config = dataclasses.replace(base.with_layout("landmarks/walls.yaml", 2.0), noise=dataclasses.replace(base.noise, mount_error=truth_tilt))
     world = SimWorld("can", robot, "vga", seed=3, config=config)
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
     perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")

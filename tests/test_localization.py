@@ -28,7 +28,7 @@ from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import compose, planar_transform, relative, rot_x, rot_y, wrap_angle
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_sim.render import COLOURS_BGR
-from nao_sim.scenarios import Room, load_sim_config
+from nao_sim.scenarios import load_sim_config
 from nao_core.robot_model import load_robot_model
 from nao_sim.world import SimWorld
 
@@ -83,7 +83,7 @@ def test_layout_fixes_on_rendered_frames_with_roll_and_pitch_left_out_of_T_BC(pa
     if recolour is not None:
         landmarks = tmp_path / f"{layout}.yaml"
         landmarks.write_text((CONFIG_DIR / "landmarks" / f"{layout}.yaml").read_text().replace(*recolour))
-    config = dataclasses.replace(load_sim_config(), landmarks=str(landmarks), room=Room(LAYOUTS[layout], 2.0))
+    config = load_sim_config().with_layout(str(landmarks), LAYOUTS[layout])
     world = SimWorld("can", robot, "vga", seed=11, config=config)
     camera = camera_of(robot, "vga")
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
@@ -545,7 +545,7 @@ def test_markers_searched_around_the_prior_give_the_full_search_fix(params, perc
 def test_small_far_markers_are_found_at_full_resolution(params, perception, robot):
     """Wall markers of 8 cm at 2-3 m (16-24 px at VGA, 8-12 px in the reduced image, below
     ``aruco_min_side_px``): the full-size search finds them."""
-    config = dataclasses.replace(load_sim_config(), landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0))
+    config = load_sim_config().with_layout("landmarks/walls.yaml", 2.0)
     world = SimWorld("can", robot, "vga", seed=3, config=config)
     camera = camera_of(robot, "vga")
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
@@ -568,7 +568,7 @@ def test_predicted_fix_and_best_landmark_view(params, perception, robot, tmp_pat
     path = tmp_path / "one_wall.yaml"  # the markers of the wall x = +2 only
     path.write_text("\n".join(line for line in lines if not line.startswith("  - ") or "position: [1.99" in line))
     one_wall = load_landmark_map(path)
-    config = dataclasses.replace(load_sim_config(), landmarks=str(path), room=Room(2.0, 2.0))
+    config = load_sim_config().with_layout(str(path), 2.0)
     world = SimWorld("can", robot, "vga", seed=6, config=config)
     camera = camera_of(robot, "vga")
     localizer = RobotLocalizer(params, one_wall, camera, perception)
@@ -644,7 +644,7 @@ def test_alternating_gaze_keeps_the_pose_in_a_wall_layout(params, perception, ro
     ``best_landmark_view``. The tracked pose stays within 2 sigma of the precision gate (5 cm) and
     its median error within 1 cm."""
     clock = _Clock()
-    config = dataclasses.replace(load_sim_config(), landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0))
+    config = load_sim_config().with_layout("landmarks/walls.yaml", 2.0)
     world = SimWorld("can", robot, "vga", seed=3, config=config, clock=clock)
     localizer = RobotLocalizer(params, world.landmarks, camera_of(robot, "vga"), perception)
     obj = (*world.scenario.position, 0.1)

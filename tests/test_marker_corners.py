@@ -16,7 +16,7 @@ from agent.marker_corners import refine_corners
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import wrap_angle
 from nao_core.robot_model import load_robot_model
-from nao_sim.scenarios import Room, load_sim_config
+from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
 PARAMS = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
@@ -84,8 +84,7 @@ def wall_views(count: int, blur: float = 0.0):
     0.6-1.1 m from the object and looking at it: (map, grey image, the true projection of a world point)."""
     robot = load_robot_model()
     base = load_sim_config()
-    config = dataclasses.replace(base, landmarks="landmarks/walls.yaml", room=Room(2.0, 2.0),
-                                 noise=dataclasses.replace(base.noise, blur_sigma=blur))
+    config = dataclasses.replace(base.with_layout("landmarks/walls.yaml", 2.0), noise=dataclasses.replace(base.noise, blur_sigma=blur))
     world = SimWorld("can", robot, "vga", seed=1, config=config)
     intrinsics = world.renderer.intrinsics
     rng = np.random.default_rng(2)

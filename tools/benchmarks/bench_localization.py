@@ -37,7 +37,7 @@ from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_y, wrap_angle
 from nao_core.robot_model import load_robot_model
-from nao_sim.scenarios import Room, load_sim_config
+from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
 VIEWS = 80
@@ -54,7 +54,7 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
     perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
-    config = dataclasses.replace(load_sim_config(), landmarks=f"landmarks/{name}.yaml", room=Room(half_size, 2.0))
+    config = load_sim_config().with_layout(f"landmarks/{name}.yaml", half_size)
     world = SimWorld("can", robot, "vga", seed=1, config=config)
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
     held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD, camera_tilt_sigma=(HELD, HELD)), world.landmarks, camera,
