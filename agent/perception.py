@@ -15,11 +15,18 @@ pixel u0 is only within a pixel of the edge: an anti-aliased or blurred edge has
 whether they pass the colour threshold depends on the threshold, not on the geometry. The edge is
 located where the pixel colours cross from the background's to the object's. With the reference
 colours B = I(u0 - w, v) (background) and O = I(u0 + w, v) (object), w = ``edge_window``, each
-pixel between them is unmixed linearly into its object coverage
+pixel between them is unmixed into its object coverage. The object's shade at the edge is not its
+shade w pixels in (a cylinder's side turns away from the light; measured on rendered frames, that
+difference biased the width by up to 2 arcmin on a dark floor), so a mixed pixel is
+I_i = c_i k O + (1 - c_i) B with the shade k free: by least squares over the three channels,
 
-    c_i = clip( (I_i - B) . (O - B) / |O - B|^2, 0, 1 ),   i = u0 - w + 1 .. u0 + w - 1,
+    [O.O  O.B] [a_i]   [O.I_i]
+    [O.B  B.B] [b_i] = [B.I_i],     c_i = clip(1 - b_i, 0, 1),   i = u0 - w + 1 .. u0 + w - 1,
 
-and since pixel i spans [i - 1/2, i + 1/2], the coverages sum to the object's length in the window:
+when O and B are more than 11.5 deg apart as colour vectors (``UNMIX_MIN_SIN2``); otherwise (one
+hue, two brightnesses), or with ``edge_unmixing: projection`` (the shade fixed at O's), by the
+projection c_i = clip((I_i - B) . (O - B) / |O - B|^2, 0, 1).
+Since pixel i spans [i - 1/2, i + 1/2], the coverages sum to the object's length in the window:
 
     e_left(v) = u0 + w - 1/2 - sum_i c_i.
 
@@ -61,6 +68,8 @@ from nao_core.config import bounds
 from nao_core.geometry import wrap_angle
 
 MIN_IMAGE_SIDE = 16  # px: anything smaller is not a camera frame
+UNMIX_MIN_SIN2 = 0.04  # sin^2 of the least angle between the object's and the background's colours (11.5 deg) for
+                       # unmixing with the object's shade free; nearer (one hue, two brightnesses) the projection does
 COARSE_WIDTH = 160  # px: the object's colour is first looked for on the frame reduced to this width
 BORDERS = ("left", "right", "top", "bottom")
 
@@ -93,6 +102,7 @@ class PerceptionParams:
     edge_band: float = field(metadata=bounds(0.0, 10.0))  # tangent-row band, in pixels' angles
     edge_window: int = field(metadata=bounds(0, 10))  # px: sub-pixel edge references this far out/in (0 = mask edge)
     edge_min_contrast: float = field(metadata=bounds(0.0, 442.0))  # BGR distance object-background for a sub-pixel edge
+    edge_unmixing: Literal["free_shade", "projection"]  # the object's shade free (module docstring), or fixed
 
     def __post_init__(self) -> None:
         if self.object_color not in self.colors:
@@ -341,7 +351,15 @@ def outline_edges(
         axis = pixels[:, -1] - background
         contrast2 = np.einsum("nc,nc->n", axis, axis)
         usable &= contrast2 >= params.edge_min_contrast**2
-        coverage = np.einsum("nkc,nc->nk", pixels[:, 1:-1] - background[:, None], axis) / np.maximum(contrast2, 1.0)[:, None]
+        mixed, obj = pixels[:, 1:-1], pixels[:, -1]
+        # I_i = a_i O + b_i B by least squares over the channels (the object's shade free), c_i = 1 - b_i
+        references = np.stack([obj, background], 1)  # n x 2 x 3
+        gram = np.einsum("nic,njc->nij", references, references)
+        apart = (np.linalg.det(gram) > UNMIX_MIN_SIN2 * gram[:, 0, 0] * gram[:, 1, 1]) & (params.edge_unmixing == "free_shade")
+        gram[~apart] = np.eye(2)
+        shares = np.linalg.solve(gram[:, None], np.einsum("nkc,njc->nkj", mixed, references)[..., None])[..., 0]
+        projected = np.einsum("nkc,nc->nk", mixed - background[:, None], axis) / np.maximum(contrast2, 1.0)[:, None]
+        coverage = np.where(apart[:, None], 1.0 - shares[..., 1], projected)
         # The object's length in the window, measured outwards from the object reference's inner pixel edge.
         subpixel = edge_px - outwards * (w - 0.5) + outwards * np.clip(coverage, 0.0, 1.0).sum(axis=1)
         u = np.where(usable, subpixel, u)

@@ -5,11 +5,17 @@ aimed at the can, seed 3). ``renderer_fattening_px`` measures how far the simula
 paints beyond a true edge (about 0 since its fill is area-exact; cv2's LINE_AA painted 0.69 px
 outside, which made every drawn silhouette 1.4 px too wide), and the table gives the width error
 net of it as well (what the measurement gets wrong about the silhouette actually drawn).
+
+Floors: the same VGA views on the floors the matrix paints its rooms with (config/sim.yaml
+``randomizer.floor_colors``), each with the edge unmixing of config/perception.yaml (``free_shade``:
+the object's shade free) and the baseline ``projection`` (its shade fixed at the colour 3 px in).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -18,7 +24,9 @@ from agent.perception import PerceptionParams, extract_silhouette, measure_objec
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import wrap_angle
 from nao_core.robot_model import load_robot_model
+from nao_sim.randomize import load_randomizer
 from nao_sim.render import fill_convex_polygon
+from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
 VIEWS = 45
@@ -39,11 +47,17 @@ def renderer_fattening_px(polygons: int = 200, seed: int = 0) -> float:
     return float(np.mean(excess))
 
 
-def width_errors(resolution: str, views: int = VIEWS) -> dict:
-    """Bearing and width errors (rad) over ``views`` simulator frames, and the camera's f_x."""
+def width_errors(resolution: str, views: int = VIEWS, floor: Optional[tuple] = None, unmixing: Optional[str] = None) -> dict:
+    """Bearing and width errors (rad) over ``views`` simulator frames, and the camera's f_x; ``floor``
+    (BGR) repaints the room's floor, ``unmixing`` replaces the configured ``edge_unmixing``."""
     robot = load_robot_model()
     params = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
-    world = SimWorld("can", robot, resolution, seed=3)
+    if unmixing is not None:
+        params = dataclasses.replace(params, edge_unmixing=unmixing)
+    config = load_sim_config()
+    if floor is not None:
+        config = dataclasses.replace(config, room=dataclasses.replace(config.room, floor_color=tuple(floor)))
+    world = SimWorld("can", robot, resolution, seed=3, config=config)
     intr = robot.camera.intrinsics(resolution)
     camera = CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
     centre, radius = np.array(world.scenario.position), world.scenario.radius
@@ -74,6 +88,16 @@ def run() -> str:
             f"{w_px.mean():+.3f} ({math.degrees(w_px.mean() / f):+.4f}) | {w_px.std():.3f} ({math.degrees(w_px.std() / f):.4f}) | "
             f"{np.abs(w_px).max():.3f} | {w_px.mean() - 2.0 * fattening:+.3f} |"
         )
+    configured = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception").edge_unmixing
+    floors = []
+    for floor in load_randomizer().floor_colors:
+        w = {m: width_errors("vga", floor=floor, unmixing=m) for m in (configured, "projection")}
+        arcmin = {m: np.degrees(np.abs(r["width"])) * 60.0 for m, r in w.items()}
+        mean = {m: np.degrees(r["width"].mean()) * 60.0 for m, r in w.items()}
+        floors.append(f"| {', '.join(f'{c:g}' for c in floor)} | {mean[configured]:+.2f} / {mean['projection']:+.2f} | "
+                      f"{np.median(arcmin[configured]):.2f} / {np.median(arcmin['projection']):.2f} | "
+                      f"{arcmin[configured].max():.2f} / {arcmin['projection'].max():.2f} | "
+                      f"{arcmin[configured].max() / arcmin['projection'].max():.2f} |")
     return (
         "## Perception: width and bearing on simulator frames\n\n"
         f"`measure_object` on {VIEWS} simulator views of the can per resolution (0.6-1.5 m, any side) against "
@@ -83,7 +107,10 @@ def run() -> str:
         "Command: `.venv/bin/python -m tools.bench --only perception_width`\n\n"
         "| resolution | views with a width | bearing max abs. error (deg) | width mean error, px (deg) | "
         "width std, px (deg) | width max abs. error (px) | width mean error net of the renderer (px) |\n"
-        "| --- | --- | --- | --- | --- | --- | --- |\n" + "\n".join(rows) + "\n"
+        "| --- | --- | --- | --- | --- | --- | --- |\n" + "\n".join(rows) + "\n\n"
+        f"VGA width error per floor paint (BGR), {configured} / projection unmixing (the baseline) in the same run, "
+        f"arcmin (1 arcmin: 0.17 px; 0.1 mm of a can's radius at 0.8 m):\n\n"
+        "| floor | mean | median abs. | max abs. | max ratio |\n| --- | --- | --- | --- | --- |\n" + "\n".join(floors) + "\n"
     )
 
 
