@@ -352,14 +352,13 @@ def outline_edges(
         contrast2 = np.einsum("nc,nc->n", axis, axis)
         usable &= contrast2 >= params.edge_min_contrast**2
         mixed, obj = pixels[:, 1:-1], pixels[:, -1]
-        # I_i = a_i O + b_i B by least squares over the channels (the object's shade free), c_i = 1 - b_i
-        references = np.stack([obj, background], 1)  # n x 2 x 3
-        gram = np.einsum("nic,njc->nij", references, references)
-        apart = (np.linalg.det(gram) > UNMIX_MIN_SIN2 * gram[:, 0, 0] * gram[:, 1, 1]) & (params.edge_unmixing == "free_shade")
-        gram[~apart] = np.eye(2)
-        shares = np.linalg.solve(gram[:, None], np.einsum("nkc,njc->nkj", mixed, references)[..., None])[..., 0]
         projected = np.einsum("nkc,nc->nk", mixed - background[:, None], axis) / np.maximum(contrast2, 1.0)[:, None]
-        coverage = np.where(apart[:, None], 1.0 - shares[..., 1], projected)
+        # I_i = a_i O + b_i B by least squares over the channels (the object's shade free), c_i = 1 - b_i (Cramer's rule)
+        oo, ob, bb = (np.einsum("nc,nc->n", x, y) for x, y in ((obj, obj), (obj, background), (background, background)))
+        det = oo * bb - ob * ob
+        apart = (det > UNMIX_MIN_SIN2 * oo * bb) & (params.edge_unmixing == "free_shade")
+        b = (oo[:, None] * np.einsum("nkc,nc->nk", mixed, background) - ob[:, None] * np.einsum("nkc,nc->nk", mixed, obj))
+        coverage = np.where(apart[:, None], 1.0 - b / np.where(apart, det, 1.0)[:, None], projected)
         # The object's length in the window, measured outwards from the object reference's inner pixel edge.
         subpixel = edge_px - outwards * (w - 0.5) + outwards * np.clip(coverage, 0.0, 1.0).sum(axis=1)
         u = np.where(usable, subpixel, u)
