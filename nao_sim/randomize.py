@@ -135,8 +135,7 @@ def _looks(room: Room, r: Randomizer, rng: np.random.Generator) -> Room:
     wall = r.wall_colors[int(rng.integers(len(r.wall_colors)))]
     azimuth, elevation = rng.uniform(-math.pi, math.pi), rng.uniform(*r.light_elevation)
     light = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation))
-    return dataclasses.replace(room, floor_color=tuple(map(float, floor)), wall_color=tuple(map(float, wall)),
-                               light=light, ambient=float(rng.uniform(*r.ambient)))
+    return dataclasses.replace(room, floor_color=floor, wall_color=wall, light=light, ambient=float(rng.uniform(*r.ambient)))
 
 
 def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optional[SimConfig] = None,

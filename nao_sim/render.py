@@ -45,7 +45,7 @@ Polygon edges are straight between projected vertices: exact for the default zer
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, List, Optional, Sequence, Tuple, Union
 
 import cv2
@@ -84,14 +84,13 @@ class Light:
         direction = np.asarray(room.light, dtype=float)
         return cls(direction / np.linalg.norm(direction), room.ambient)
 
-    def factor(self, normals: np.ndarray, ambient: Optional[float] = None) -> np.ndarray:
+    def factor(self, normals: np.ndarray) -> np.ndarray:
         """ambient + (1 - ambient) max(0, n . l) of unit normals (..., 3), or of horizontal ones (..., 2)."""
-        a = self.ambient if ambient is None else ambient
-        return a + (1.0 - a) * np.maximum(0.0, normals @ self.direction[: normals.shape[-1]])
+        return self.ambient + (1.0 - self.ambient) * np.maximum(0.0, normals @ self.direction[: normals.shape[-1]])
 
-    def shade(self, color: Sequence[int], normal: np.ndarray, ambient: Optional[float] = None) -> Tuple[int, int, int]:
+    def shade(self, color: Sequence[int], normal: np.ndarray) -> Tuple[int, int, int]:
         """The colour times its Lambert factor."""
-        k = float(self.factor(np.asarray(normal, dtype=float), ambient))
+        k = float(self.factor(np.asarray(normal, dtype=float)))
         return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
 
 
@@ -327,7 +326,7 @@ class _MarkerBoard:
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, lm.dictionary))
         texture = cv2.aruco.generateImageMarker(dictionary, int(lm.id), texels, borderBits=1)
         return cls(lm, corners, board, cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR),
-                   light.shade((240, 240, 240), lm.normal, ambient=max(light.ambient, BOARD_AMBIENT)))
+                   replace(light, ambient=max(light.ambient, BOARD_AMBIENT)).shade((240, 240, 240), lm.normal))
 
     @property
     def centre(self) -> np.ndarray:

@@ -163,7 +163,7 @@ class Room:
     ambient: float = field(metadata=bounds(0.0, 1.0))  # share of the light every surface gets
 
     def __post_init__(self) -> None:
-        if not self.light[2] > 0.0 or not math.hypot(*self.light) > 0.0:
+        if not self.light[2] > 0.0:
             raise ValueError(f"room.light must point upwards (positive z), got {list(self.light)}")
 
 
