@@ -373,6 +373,8 @@ def test_station_process_killed_mid_walk_stops_the_robot_and_leaves_a_readable_l
         assert "incomplete MCAP" in done.stderr
 
 
+@pytest.mark.slow  # 10-16 s; fast: the station notices a frozen bridge within 2 s (above), a killed one ends
+# the mission with its result (tests/test_station_cli.py)
 def test_bridge_frozen_mid_mission_ends_it_cleanly_as_bridge_lost(tmp_path):
     (tmp_path / "bridge.yaml").write_text("bridge:\n  resolution: qvga\n")
     bridge = LocalBridge(["--sim", "--config", str(tmp_path / "bridge.yaml")], tmp_path / "bridge.log")
