@@ -70,18 +70,18 @@ point behind the camera or a non-finite residual ends the refinement with "no fi
 
 Pivot. Rx(delta) Ry(epsilon) turns the camera about the body origin on the floor, as the torso
 sways: it moves the camera by omega x c, omega = (delta, epsilon, 0), c = T_BC's translation, so
-(c_z epsilon, -c_z delta) on the floor. The camera's tilt on its mount and the head pitch sensor's
-error turn it about itself (the neck: 9 cm away). Of t, the torso's share has the prior
-Sigma_s = ``roll_sigma``^2 I (the frame's sway, roll and pitch alike, widened with the roll below);
-the rest, t_m = K t, K = I - Sigma_s Sigma_t^-1, turns the camera in place, and the body is moved
-back by what the fit moved the camera for it:
+by (c_z epsilon, -c_z delta) on the floor. The camera's tilt on its mount and the head pitch
+sensor's error turn it about itself (the neck is 9 cm away). The torso's share of t has the prior
+Sigma_s = ``roll_sigma``^2 I (the frame's sway, roll and pitch alike, within ``pitch_sigma``;
+widened with the roll below). The rest, t_m = K t, K = I - Sigma_s Sigma_t^-1, turns the camera in
+place, and the body is moved back by what the fit moved the camera for it:
 
-    (x, y) <- (x, y) + R(theta) c_z (epsilon_m, -delta_m),
+    (x, y) <- (x, y) + R(theta) c_z J t_m,   J (delta, epsilon) = (epsilon, -delta),
 
-the camera's pose unchanged; the covariance is G C G^T + R c_z J K Sigma_s J^T R^T c_z (G the
-linear map on (x, y, theta, delta, epsilon), C its covariance, J (delta, epsilon) -> (epsilon,
--delta), K Sigma_s the share's own variance). Without it a standing fix in a room whose camera
-sat 1 deg down on its mount was 8.5 mm off with a std of 0.8 mm across that direction.
+the camera's pose unchanged. The covariance is G C G^T + R c_z J (K Sigma_s) J^T R^T c_z, with G
+that linear map on (x, y, theta, delta, epsilon), C its covariance and K Sigma_s the split's own
+variance; a predicted fix is the same at t = 0. Turned about the floor, a standing fix in a room
+whose camera sat 1 deg down on its mount was 8.8 mm off, with a std of 0.8 mm in that direction.
 
 Robust gate (markers): the joint solution of all markers is kept when every marker's corners
 reproject within ``ransac_reprojection_px``; otherwise each marker alone is a hypothesis, markers
@@ -813,6 +813,10 @@ class RobotLocalizer:
         """Prior covariance of (delta, epsilon) at the corrected T_BC: the torso's and the tilt estimate's."""
         return np.diag([roll_sigma, self.params.pitch_sigma]) ** 2 + self.tilt.body_covariance(T_BC)
 
+    def _sway_covariance(self, roll_sigma: float) -> np.ndarray:
+        """Prior covariance of the torso's own sway in (delta, epsilon), within the frame's (module docstring, Pivot)."""
+        return np.diag([roll_sigma, min(roll_sigma, self.params.pitch_sigma)]) ** 2
+
     def _set_tilt_prior(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
         """The frame's T_BC corrected by the learnt camera tilt; sets the fit's prior on (delta, epsilon):
         the frame's torso roll and pitch and the tilt estimate's uncertainty (agent/camera_tilt.py)."""
@@ -897,7 +901,7 @@ class RobotLocalizer:
         # per-axis residual variance: sum ||r_i||^2 = N rms^2 over 2N residuals, 3 degrees of freedom used
         residual_var = max(self.params.pixel_sigma**2, len(points) * rms**2 / max(1, 2 * len(points) - 3))
         information, evidence = _tilt_evidence(H - self._tilt_prior, self._tilt_prior, p, residual_var)
-        tilt_covariance, sway_covariance = self._tilt_covariance, np.eye(2) * self._roll_sigma**2
+        tilt_covariance, sway_covariance = self._tilt_covariance, self._sway_covariance(self._roll_sigma)
         if abs(p[3]) > self.params.max_roll_sigmas * max(self.params.roll_sigma, tilt_std[0]):  # the roll prior was wrong: widen it to |delta|
             widening = np.diag([p[3] ** 2 - tilt_covariance[0, 0], 0.0])
             tilt_covariance, sway_covariance = tilt_covariance + widening, sway_covariance + widening
@@ -1180,10 +1184,12 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         Jr = J.reshape(-1, 5)
-        H = Jr.T @ Jr + tilt_information(self.params.pixel_sigma, self._frame_tilt_covariance(T_BC, self.params.roll_sigma))
+        tilt_covariance = self._frame_tilt_covariance(T_BC, self.params.roll_sigma)
+        H = Jr.T @ Jr + tilt_information(self.params.pixel_sigma, tilt_covariance)
         if np.linalg.cond(H) > 1e10:
             return len(X), None
-        return len(X), self.params.pixel_sigma**2 * np.linalg.inv(H)[:3, :3]
+        G, share_covariance = head_pivot(p, float(T_BC[2, 3]), tilt_covariance, self._sway_covariance(self.params.roll_sigma))
+        return len(X), G @ (self.params.pixel_sigma**2 * np.linalg.inv(H)) @ G.T + share_covariance
 
     def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
         """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
