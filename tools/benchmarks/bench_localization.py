@@ -11,12 +11,14 @@ cold*: the same frames as a standing robot gives them (T_BC as the kinematics re
 missed, the standing roll prior ``roll_sigma_still``: the issue's "still frames"), the camera's tilt
 on its mount not yet learnt (agent/camera_tilt.py: a mission's first standing frames); *still, cold,
 tilt learnt*: the same, the tilt learnt (its std at ``camera_tilt_floor``: the rest of a mission's
-standing frames); *prior*:
+standing frames); *still, cold, camera tilted*: the same views in a world whose camera sits MOUNT_DEG
+degrees (roll, pitch down) off on its mount, tilt not learnt (agent/localization.py, Pivot); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking); two baselines, cold: *pitch held* to T_BC's
 (``pitch_sigma`` and ``camera_tilt_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
 (``aruco_edge_refinement`` off: the corners biased inwards, agent/marker_corners.py). "well-posed" is
 the share of counted frames whose predicted fix (``predicted_fix`` at the true pose) is within half
-the precision gate, and the fixes among them.
+the precision gate, and the fixes among them. NEES: the fixes' mean e^T R^-1 e of their (x, y)
+error e and covariance R (2 if R is honest, as the fusion and the jump gate assume).
 Cold, the gate drops fixes less precise than ``max_position_std`` (2.5 cm); with a prior it keeps
 them up to ``max_position_std_with_prior`` (8 cm) for the Kalman fusion, which weighs them by their
 covariance, so a few are off by more than 5 cm there.
@@ -45,6 +47,7 @@ TILT = math.radians(0.3)  # rad, the roll and the pitch T_BC misses
 HELD = 1e-5  # rad, the baseline's pitch prior: held
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
+MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degrees (the matrix draws within these)
 
 
 
@@ -56,6 +59,8 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
     config = load_sim_config().with_layout(f"landmarks/{name}.yaml", half_size)
     world = SimWorld("can", robot, "vga", seed=1, config=config)
+    tilted_config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, mount_error=tuple(math.radians(a) for a in MOUNT_DEG)))
+    tilted = SimWorld("can", robot, "vga", seed=1, config=tilted_config)
     localizer = RobotLocalizer(params, world.landmarks, camera, perception)
     held = RobotLocalizer(dataclasses.replace(params, pitch_sigma=HELD, camera_tilt_sigma=(HELD, HELD)), world.landmarks, camera,
                           perception)
@@ -64,16 +69,19 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
     # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior)
     solvers = (("cold", localizer, False, False), ("still, cold", localizer, False, True),
-               ("still, cold, tilt learnt", learnt, False, True), ("prior", localizer, True, False), ("cold, pitch held", held, False, False),
+               ("still, cold, tilt learnt", learnt, False, True), ("still, cold, camera tilted", localizer, False, True),
+               ("prior", localizer, True, False), ("cold, pitch held", held, False, False),
                ("cold, cornerSubPix corners", subpix, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
-    rows = {mode: {"errors": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
+    rows = {mode: {"errors": [], "nees": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
     for _ in range(VIEWS):
         d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
         truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
         world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
+        tilted.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
+        tilted_frame = tilted.render()
         if landmarks_in_image(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
             continue
         _, predicted = localizer.predicted_fix(truth, frame.T_BC)
@@ -86,7 +94,8 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
             solver.reset()
             begin = time.perf_counter()
             if standing:
-                fix = solver.measure(frame.image, frame.T_BC, None, params.roll_sigma_still)
+                view = tilted_frame if mode == "still, cold, camera tilted" else frame
+                fix = solver.measure(view.image, view.T_BC, None, params.roll_sigma_still)
             else:
                 fix = solver.measure(frame.image, T_BC, prior if with_prior else None)
             row["times"].append((time.perf_counter() - begin) * 1e3)
@@ -94,7 +103,9 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
             row["posed"] += posed
             if fix is not None:
                 row["posed_fixed"] += posed
-                row["errors"].append(math.hypot(fix.pose[0] - truth[0], fix.pose[1] - truth[1]))
+                error = np.array(fix.pose[:2]) - truth[:2]
+                row["errors"].append(float(np.linalg.norm(error)))
+                row["nees"].append(float(error @ np.linalg.solve(fix.covariance[:2, :2], error)))
     out, summary = [], {}
     for mode, row in rows.items():
         e = np.array(row["errors"]) * 1e3
@@ -102,7 +113,8 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
         out.append(
             f"| {name} | {mode} | {row['shown']} | {100 * len(e) / max(1, row['shown']):.0f} % | "
             f"{row['posed_fixed']} / {row['posed']} | {summary[mode][1]:.1f} | "
-            f"{summary[mode][2]:.1f} | {int((e > 50).sum())} | {np.median(row['times']):.1f} |"
+            f"{summary[mode][2]:.1f} | {int((e > 50).sum())} | {np.mean(row['nees']) if row['nees'] else math.nan:.2f} | "
+            f"{np.median(row['times']):.1f} |"
         )
     ours, base = summary["cold"], summary["cold, cornerSubPix corners"]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -115,12 +127,12 @@ def run() -> str:
     return "\n".join([
         "## Localization per landmark layout",
         "",
-        __doc__.split("\n\n", 1)[1].replace("\n", " ").replace("VIEWS", str(VIEWS)).strip(),
+        __doc__.split("\n\n", 1)[1].replace("\n", " ").replace("VIEWS", str(VIEWS)).replace("MOUNT_DEG", f"{MOUNT_DEG[0]:g} and {MOUNT_DEG[1]:g}").strip(),
         "",
         "Command: `.venv/bin/python -m tools.bench --only localization`",
         "",
-        "| layout | mode | frames with >= 2 in view | fix | well-posed: fixed / all | median error mm | max error mm | > 5 cm | median ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| layout | mode | frames with >= 2 in view | fix | well-posed: fixed / all | median error mm | max error mm | > 5 cm | NEES | median ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *(row for rows, _ in results for row in rows),
         "",
         "Cold, edge-line corners against the cornerSubPix corners, in the same run (ratio: edge lines / cornerSubPix):",
