@@ -67,11 +67,11 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
     learnt = RobotLocalizer(dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2), world.landmarks,
                             camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
-    # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior)
-    solvers = (("cold", localizer, False, False), ("still, cold", localizer, False, True),
-               ("still, cold, tilt learnt", learnt, False, True), ("still, cold, camera tilted", localizer, False, True),
-               ("prior", localizer, True, False), ("cold, pitch held", held, False, False),
-               ("cold, cornerSubPix corners", subpix, False, False))
+    # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior, the tilted camera's frame)
+    solvers = (("cold", localizer, False, False, False), ("still, cold", localizer, False, True, False),
+               ("still, cold, tilt learnt", learnt, False, True, False), ("still, cold, camera tilted", localizer, False, True, True),
+               ("prior", localizer, True, False, False), ("cold, pitch held", held, False, False, False),
+               ("cold, cornerSubPix corners", subpix, False, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
     rows = {mode: {"errors": [], "nees": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
@@ -89,12 +89,12 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
         roll, pitch = rng.choice([-1.0, 1.0], 2) * TILT
         T_BC = rot_x(roll) @ rot_y(pitch) @ frame.T_BC
         prior = tuple(t + o for t, o in zip(truth, PRIOR_OFFSET))
-        for mode, solver, with_prior, standing in solvers:
+        for mode, solver, with_prior, standing, on_tilted in solvers:
             row = rows[mode]
             solver.reset()
             begin = time.perf_counter()
             if standing:
-                view = tilted_frame if mode == "still, cold, camera tilted" else frame
+                view = tilted_frame if on_tilted else frame
                 fix = solver.measure(view.image, view.T_BC, None, params.roll_sigma_still)
             else:
                 fix = solver.measure(frame.image, T_BC, prior if with_prior else None)
