@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agent.camera import CameraModel
+from agent.camera_tilt import CameraTilt
 from agent.localization import (
     LocalizationParams,
     PlanarModel,
@@ -711,6 +712,9 @@ def test_a_standing_robots_odometry_jitter_keeps_the_still_roll_prior(params, ro
     assert not localizer._moving  # noqa: SLF001
 
 
+MARKER_CORNERS = np.array([[0.0, -0.065, -0.065], [0.0, 0.065, -0.065], [0.0, 0.065, 0.065], [0.0, -0.065, 0.065]])  # 13 cm, x out of its face
+
+
 def test_fix_covariance_follows_corner_noise_above_its_floor(params, robot):
     """Synthetic corners of four markers 1.2-1.6 m away with 0.6 px noise (four times ``pixel_sigma``:
     the residuals set the scale), T_BC exact and the torso tilt held (priors of 1e-6 rad): the fixes'
@@ -721,8 +725,7 @@ def test_fix_covariance_follows_corner_noise_above_its_floor(params, robot):
     camera = CameraModel.from_fov(640, 480, math.radians(57.0))  # no distortion: the pixels are the model's
     T_BC = robot.camera_in_robot(0.0, 0.1)
     model = PlanarModel(camera, T_BC)
-    corners = np.array([[0.0, -0.065, -0.065], [0.0, 0.065, -0.065], [0.0, 0.065, 0.065], [0.0, -0.065, 0.065]])
-    X = np.concatenate([corners + (x, y, z) for x, y, z in [(1.6, -0.5, 0.3), (1.4, 0.0, 0.6), (1.6, 0.5, 0.4), (1.2, 0.3, 0.25)]])
+    X = np.concatenate([MARKER_CORNERS + (x, y, z) for x, y, z in [(1.6, -0.5, 0.3), (1.4, 0.0, 0.6), (1.6, 0.5, 0.4), (1.2, 0.3, 0.25)]])
     localizer = RobotLocalizer(dataclasses.replace(params, pitch_sigma=held), LandmarkMap(()), camera)
     rng = np.random.default_rng(3)
     nees = []
@@ -740,17 +743,25 @@ def _two_far_markers(robot):
     """A sparse layout's view: two 13 cm markers 2 m ahead, 0.9 m apart, at knee height; T_BC, camera."""
     camera = CameraModel.from_fov(640, 480, math.radians(57.0))
     T_BC = robot.camera_in_robot(0.0, 0.1)
-    corners = np.array([[0.0, -0.065, -0.065], [0.0, 0.065, -0.065], [0.0, 0.065, 0.065], [0.0, -0.065, 0.065]])
-    X = np.concatenate([corners + (2.0, y, 0.35) for y in (-0.45, 0.45)])
+    X = np.concatenate([MARKER_CORNERS + (2.0, y, 0.35) for y in (-0.45, 0.45)])
     return camera, T_BC, X
 
 
 def _on_its_mount(T_BC: np.ndarray, roll: float, pitch: float) -> np.ndarray:
-    """T_BC of a camera turned about its own centre by (roll about the optical axis, pitch down), as
-    the simulator mounts it (nao_sim/world.py)."""
-    T = np.array(T_BC, dtype=float)
-    T[:3, :3] = T[:3, :3] @ cv2.Rodrigues(np.array([-pitch, 0.0, roll]))[0]
-    return T
+    """T_BC of a camera turned about its own centre by (roll, pitch down) on its mount: what a tilt
+    estimate of exactly that corrects the reported T_BC to (agent/camera_tilt.py)."""
+    mount = CameraTilt((0.0, 0.0), 0.0)
+    mount.estimate = np.array([roll, pitch])
+    return mount.correct(T_BC)
+
+
+def compose_marker(corners: np.ndarray, pose: np.ndarray, bearing: float, distance: float, height: float) -> np.ndarray:
+    """A marker's world corners (marker-frame ``corners``: x out of its face) ``distance`` from
+    ``pose`` at world ``bearing``, facing it, its centre ``height`` above the floor."""
+    c, s = math.cos(bearing), math.sin(bearing)
+    centre = np.array([pose[0] + distance * c, pose[1] + distance * s, height])
+    facing = np.array([[-c, s, 0.0], [-s, -c, 0.0], [0.0, 0.0, 1.0]])  # x towards the robot
+    return corners @ facing.T + centre
 
 
 @pytest.mark.parametrize("head_yaw, walking", [(0.0, False), (0.6, False), (0.6, True)])
@@ -769,9 +780,8 @@ def test_a_tilt_missing_from_T_BC_leaves_the_fix_where_the_robot_is(params, robo
         T_BC_true, roll_sigma = rot_x(math.radians(0.3)) @ rot_y(math.radians(0.5)) @ T_BC, params.roll_sigma
     else:
         T_BC_true, roll_sigma = _on_its_mount(T_BC, math.radians(0.5), math.radians(1.0)), params.roll_sigma_still
-    corners = np.array([[0.0, -0.065, -0.065], [0.0, 0.065, -0.065], [0.0, 0.065, 0.065], [0.0, -0.065, 0.065]])
     heading = truth[2] + head_yaw
-    X = np.concatenate([compose_marker(corners, truth, heading + bearing, distance, height)
+    X = np.concatenate([compose_marker(MARKER_CORNERS, truth, heading + bearing, distance, height)
                         for bearing, distance, height in ((-0.3, 1.5, 0.2), (-0.1, 3.0, 0.8), (0.15, 2.2, 0.45), (0.35, 1.8, 0.6))])
     pixels = PlanarModel(camera, T_BC_true).project(truth, X)[0]
     learnt = dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2)
@@ -780,15 +790,6 @@ def test_a_tilt_missing_from_T_BC_leaves_the_fix_where_the_robot_is(params, robo
     error = np.array(fix.pose[:2]) - truth[:2]
     assert np.linalg.norm(error) < 0.002
     assert error @ np.linalg.solve(fix.covariance[:2, :2], error) < 9.0  # within 3 sigma in every direction
-
-
-def compose_marker(corners: np.ndarray, pose: np.ndarray, bearing: float, distance: float, height: float) -> np.ndarray:
-    """A marker's world corners (marker-frame ``corners``: x out of its face) ``distance`` from
-    ``pose`` at world ``bearing``, facing it, its centre ``height`` above the floor."""
-    c, s = math.cos(bearing), math.sin(bearing)
-    centre = np.array([pose[0] + distance * c, pose[1] + distance * s, height])
-    facing = np.array([[-c, s, 0.0], [-s, -c, 0.0], [0.0, 0.0, 1.0]])  # x towards the robot
-    return corners @ facing.T + centre
 
 
 def test_a_fix_s_intrinsics_gain_is_the_derivative_of_its_pose(params, robot):
