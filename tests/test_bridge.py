@@ -47,6 +47,8 @@ from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import StandIn
 from nao_sim.world import SimWorld
 
+pytestmark = pytest.mark.serial  # the bridge process, Zenoh sessions and its watchdog's timing: run alone (Makefile test)
+
 MODEL = load_robot_model()
 WAIT = 3.0  # s, generous: only a broken bridge waits this long
 TRANSPORT_SLACK = 0.1  # s: Zenoh, libqi and thread wake-ups on a loaded 2-core loopback, on top of deadman + one period

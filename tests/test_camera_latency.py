@@ -21,6 +21,8 @@ from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import StandIn
 from nao_sim.world import SimWorld
 
+pytestmark = pytest.mark.serial  # frames timed against the wall clock: run alone (Makefile test)
+
 FOCAL = 140.0  # px at the thumbnail's width
 
 

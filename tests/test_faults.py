@@ -51,6 +51,8 @@ from station.mcap_log import read_log
 from station.topics import FRAME_META, FRAME_REJECTED, INPUT
 from tests.zenoh_peers import arm, bridge_on_standin, free_port, wait_until
 
+pytestmark = pytest.mark.serial  # missions' processes killed and frozen on a timer: run alone (Makefile test)
+
 KEYS = RobotKeys("nao")
 PY = sys.executable
 STOP_WITHIN = 0.3  # s: SIGKILLed station -> stopMove (issue 8)

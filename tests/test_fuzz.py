@@ -318,6 +318,7 @@ def test_fuzz_corrupt_log():
 # -- through the real bridge: hostile commands never move the robot ----------------------------------
 
 
+@pytest.mark.serial  # the bridge process on the stand-in
 def test_hostile_commands_through_the_bridge_never_move_the_robot():
     """Malformed walk and head commands on the wire: all rejected and counted, no ALMotion call."""
     hostile = st.one_of(st.binary(max_size=200), mutated(to_dict(VALID["cmd.walk"])).map(dumps),
@@ -368,6 +369,7 @@ def _rss_bytes() -> int:
         return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+@pytest.mark.serial  # the bridge process on the stand-in
 def test_flood_of_hostile_messages_is_counted_logged_little_and_keeps_memory_flat():
     """10,000 hostile messages on every key the bridge listens to: 0 crashes, 0 motions, all counted,
     log under 100 KB (one line per reason per second), memory growth under 10 MB."""

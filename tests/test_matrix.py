@@ -36,6 +36,8 @@ from nao_sim.render import Renderer
 from nao_sim.scenarios import load_sim_config
 from tests.conftest import CI_SEED
 
+pytestmark = pytest.mark.serial  # a whole mission through the NAOqi stand-in: run alone (Makefile test)
+
 ROBOT = load_robot_model()
 CONFIG = load_sim_config()
 PERCEPTION = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")

@@ -35,6 +35,8 @@ from nao_sim.scenarios import load_sim_config
 from nao_sim.standin import ALMotion, ALVideoDevice, CameraDelivery, StandIn
 from nao_sim.world import SimWorld
 
+pytestmark = pytest.mark.serial  # a qi session to the stand-in and its timing: run alone (Makefile test)
+
 MODEL = load_robot_model()
 NAOQI_PARAMS = load(BridgeParams, [CONFIG_DIR / "bridge.yaml"], section="bridge").naoqi  # the shipped defaults
 SIM = load_sim_config()

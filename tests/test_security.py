@@ -40,6 +40,8 @@ from tests.zenoh_peers import (
 from station.certs import CertError, make_lab_certificates
 from station.certs import main as make_certs_main
 
+pytestmark = pytest.mark.serial  # the bridge process and TLS sessions: run alone (Makefile test)
+
 N = 40  # commands per intruder
 KEYS = RobotKeys("nao")
 WALK = encode(WalkCommand(seq=10**6, vx=0.1, vy=0.0, omega=0.2, ttl=1.0, lease=""))

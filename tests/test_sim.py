@@ -20,6 +20,8 @@ from nao_sim.render import NEAR, Light
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
+pytestmark = pytest.mark.serial  # the simulator's real clock and its frame pacing: run alone (Makefile test)
+
 ROBOT = load_robot_model()
 CONFIG = load_sim_config()
 LANDMARKS = load_landmark_map(CONFIG.landmark_path)

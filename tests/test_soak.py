@@ -32,6 +32,8 @@ from station.launch import LocalBridge
 from station.link import BridgeLink
 from tests.zenoh_peers import wait_until
 
+pytestmark = pytest.mark.serial  # a long mission's processes: run alone (Makefile test)
+
 SOAK_SECONDS = float(os.environ.get("SOAK_SECONDS", "1800"))
 MISSION_SECONDS = float(os.environ.get("SOAK_MISSION_SECONDS", "20"))
 RSS_SLACK_MB = 25.0

@@ -16,6 +16,8 @@ import pytest
 from nao_core.robot_model import load_robot_model
 from station.config import load_station_config
 
+pytestmark = pytest.mark.serial  # station processes and the bridges they start: run alone (Makefile test)
+
 
 def station(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=60)

@@ -13,6 +13,8 @@ from nao_core.transport import TransportConfig
 from station.launch import LocalBridge
 from station.link import BridgeLink, BridgeUnavailable
 
+pytestmark = pytest.mark.serial  # Zenoh sessions and their leases: run alone (Makefile test)
+
 
 def plain(endpoint: str) -> TransportConfig:
     """The station's default: the credentials generated on first use (shared with the bridge on this machine)."""

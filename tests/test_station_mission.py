@@ -52,6 +52,8 @@ from station.launch import free_port
 from station.mcap_log import read_log
 from station.topics import CMD_WALK, DECISION, STATE, TRUTH
 
+pytestmark = pytest.mark.serial  # missions' processes: run alone (Makefile test)
+
 PY = sys.executable
 MISSION_TIMEOUT = 240.0
 SIM = load_sim_config()
