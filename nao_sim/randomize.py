@@ -4,7 +4,9 @@
 build (``config/sim.yaml`` ``randomizer`` section holds every range):
 
 * a landmark layout from ``layouts`` (walls at several heights, the low ring, repeated colours,
-  mixed, sparse), with the room size the layout was written for;
+  mixed, sparse), with the room size the layout was written for; or, drawn last with probability
+  ``drawn_layout.share`` (so that the other worlds stay as they were), a layout and room size drawn as
+  users lay them out (nao_sim/layouts.py, from ``default_rng([seed, 1])``) in its place;
 * an object from ``objects`` (named scenarios of real sizes and shapes: cans, a bottle, a bucket, boxes, a mug, a
   figure, meshes), moved by up to ``object_offset`` from its place and turned at random;
 * the start: at a distance U(``start_distance``) from the object and an azimuth U(-pi, pi), with
@@ -43,6 +45,7 @@ import numpy as np
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import Pose
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
+from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file
 from nao_sim.scenarios import Room, Scenario, SimConfig, load_sim_config
 from nao_sim.world import SimWorld
 
@@ -78,6 +81,7 @@ class Randomizer:
     wall_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))
     light_elevation: Tuple[float, float] = field(metadata=bounds(0.1, math.pi / 2))  # rad above the horizon
     ambient: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))
+    drawn_layout: DrawnLayoutParams
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
@@ -178,8 +182,12 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     sensor = dataclasses.replace(sensor, mount_error=tuple(float(m) for m in rng.uniform(-1.0, 1.0, 2) * r.mount_error))
     sensor = dataclasses.replace(sensor, shutter=float(rng.uniform(*r.shutter)))  # drawn after the rest: their draws stay
     config = dataclasses.replace(config, noise=sensor, room=_looks(config.room, r, rng))
-    return WorldSpec(seed, layout_name, str((CONFIG_DIR / layout.file).resolve()), config, scenario, object_name,
-                     true_robot, (x, y, heading), bare)
+    landmark_path = (CONFIG_DIR / layout.file).resolve()
+    if rng.uniform() < r.drawn_layout.share:  # drawn last: the other worlds' draws stay
+        drawn = draw_layout(np.random.default_rng([seed, 1]), r.drawn_layout)
+        layout_name, landmark_path = f"drawn {drawn.kind}", layout_file(drawn)
+        config = config.with_layout(str(landmark_path), drawn.half_size)
+    return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare)
 
 
 class RandomWorld(SimWorld):

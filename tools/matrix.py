@@ -1,8 +1,9 @@
 """The randomized mission matrix: whole missions through the NAOqi backend in randomized worlds.
 
-For each seed, ``nao_sim.randomize.random_world(seed)`` draws a world (layout, object, start,
-walking errors, sway, camera calibration error, frame latency, drops, clock offset, a bare NAOqi
-for a quarter, sensor noise, blur, brightness and shutter); the world is served by the NAOqi stand-in
+For each seed, ``nao_sim.randomize.random_world(seed)`` draws a world (a layout of the project's or
+one drawn as users lay them out, object, start, walking errors, sway, camera calibration error,
+frame latency, drops, clock offset, a bare NAOqi for a quarter, sensor noise, blur, brightness and
+shutter); the world is served by the NAOqi stand-in
 (``nao_sim.standin.StandIn``) in this process over libqi, and ``station start --naoqi`` runs the
 mission against it as a separate process (its bridge drives the stand-in with YUV422 frames, RGB
 from a bare one), with the layout as its landmark map and the configured (not the true) camera.
@@ -55,6 +56,7 @@ import math
 import os
 import platform
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -254,8 +256,10 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     resolution = resolution or load_station_config().station.resolution
     spec = spec or random_world(seed)
     (out / "world.json").write_text(json.dumps(spec.summary(), indent=2) + "\n")
+    landmarks = out / "landmarks.yaml"  # the run keeps the map it was given (a drawn layout's lives in a temporary folder)
+    shutil.copyfile(spec.landmark_path, landmarks)
     override = out / "station.yaml"
-    override.write_text(yaml.safe_dump({"station": {"landmark_map": spec.landmark_path, "resolution": resolution}}))
+    override.write_text(yaml.safe_dump({"station": {"landmark_map": str(landmarks.resolve()), "resolution": resolution}}))
     world = RandomWorld(spec, resolution=resolution)
     monitor = _ClearanceMonitor(world)
     renders: Dict[float, np.ndarray] = {}  # capture stamp -> true T_WC of every image the stand-in renders

@@ -1,0 +1,99 @@
+"""Landmark layouts drawn as users lay them out (nao_sim/layouts.py) and their place among the
+randomized worlds (nao_sim/randomize.py)."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from agent.perception import PerceptionParams
+from nao_core.config import CONFIG_DIR, load
+from nao_core.landmark_map import load_landmark_map
+from nao_sim.layouts import BALL_COLOURS, COLOURS_USED, DICTIONARY_SIZE, KINDS, WALL_GAP, draw_layout, layout_file
+from nao_sim.randomize import load_randomizer, random_world
+
+RANDOMIZER = load_randomizer()
+P = RANDOMIZER.drawn_layout
+OBJECT_COLOR = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception").object_color
+LAYOUTS = [draw_layout(np.random.default_rng(seed), P) for seed in range(300)]
+
+
+def _wall(position, half):
+    """The wall a landmark is on (0: x = +h, 1: y = +h, 2: x = -h, 3: y = -h) and its offset along it."""
+    x, y, _ = position
+    inner = half - WALL_GAP
+    on = [abs(x - inner) < 1e-3, abs(y - inner) < 1e-3, abs(x + inner) < 1e-3, abs(y + inner) < 1e-3]
+    assert sum(on) == 1, (position, half)
+    wall = on.index(True)
+    return wall, (y if wall % 2 == 0 else x)
+
+
+def test_every_landmark_is_on_a_wall_facing_into_the_room_within_the_ranges():
+    for layout in LAYOUTS:
+        half = layout.half_size
+        assert P.half_size[0] <= half <= P.half_size[1]
+        walls = collections.defaultdict(list)
+        for lm in layout.landmarks.landmarks:
+            wall, along = _wall(lm.position, half)
+            walls[wall].append(lm)
+            assert abs(along) <= half - P.corner_margin + 1e-3
+            assert P.height[0] - 1e-3 <= lm.position[2] <= P.height[1] + 1e-3
+            if lm.kind == "aruco":  # its marker faces the room's centre
+                assert float(np.dot(lm.normal[:2], lm.position[:2])) == pytest.approx(-(half - WALL_GAP), abs=1e-3)
+        assert P.walls[0] <= len(walls) <= P.walls[1]
+        if layout.kind == "mixed":  # a wall is of one kind; both kinds are in the room
+            assert all(len({lm.kind for lm in on}) == 1 for on in walls.values())
+            assert {lm.kind for lm in layout.landmarks.landmarks} == {"aruco", "color"}
+        else:
+            assert {lm.kind for lm in layout.landmarks.landmarks} == {"aruco" if layout.kind == "aruco" else "color"}
+    assert {layout.kind for layout in LAYOUTS} == set(KINDS)
+
+
+def test_markers_are_one_printed_size_with_distinct_ids_and_balls_repeat_four_colours_none_the_objects():
+    for layout in LAYOUTS:
+        markers, balls = layout.landmarks.of_kind("aruco"), layout.landmarks.of_kind("color")
+        ids = [lm.id for lm in markers]
+        assert len(set(ids)) == len(ids) and all(0 <= i < DICTIONARY_SIZE for i in ids)
+        assert len({lm.size for lm in markers}) <= 1 and all(P.marker_size[0] - 1e-4 <= lm.size <= P.marker_size[1] + 1e-4 for lm in markers)
+        assert len({lm.diameter for lm in balls}) <= 1
+        counts = collections.Counter(lm.color for lm in balls)
+        assert OBJECT_COLOR not in counts and set(counts) <= set(BALL_COLOURS) and len(counts) <= COLOURS_USED
+        if len(balls) >= 2 * COLOURS_USED:  # each colour used about as often: no colour names its ball
+            assert len(counts) == COLOURS_USED and min(counts.values()) >= len(balls) // COLOURS_USED - 1
+    dense = dataclasses.replace(P, spacing=(0.1, 0.1), walls=(4, 4), half_size=(2.5, 2.5))  # 4 x 47 spots
+    crowded = [draw_layout(np.random.default_rng(seed), dense) for seed in range(12)]
+    markers = [layout.landmarks.of_kind("aruco") for layout in crowded if layout.kind == "aruco"]
+    assert markers and all(len(m) == DICTIONARY_SIZE for m in markers)  # thinned to the dictionary's ids, none repeated
+
+
+def test_a_drawn_layout_is_a_landmark_file_that_reads_back_the_same_under_one_name():
+    for layout in LAYOUTS[:20]:
+        path = layout_file(layout)
+        assert load_landmark_map(path) == layout.landmarks
+        assert layout_file(draw_layout(np.random.default_rng(LAYOUTS.index(layout)), P)) == path
+
+
+def test_drawn_layouts_replace_the_layout_of_a_share_of_worlds_and_change_nothing_else():
+    """Drawn last: a world that draws a layout is the world it was with none but for its landmarks
+    and room size (the CI seed and the documented slow seeds keep their objects, starts and noise)."""
+    none = dataclasses.replace(RANDOMIZER, drawn_layout=dataclasses.replace(P, share=0.0))
+    drawn = 0
+    for seed in range(40):
+        world, plain = random_world(seed, RANDOMIZER), random_world(seed, none)
+        if world.layout.startswith("drawn"):
+            drawn += 1
+            assert world.layout.split()[1] in KINDS
+            landmarks = load_landmark_map(world.landmark_path)
+            assert str(world.config.landmark_path) == world.landmark_path
+            half = world.config.room.half_size
+            assert P.half_size[0] <= half <= P.half_size[1] and landmarks.landmarks
+            assert max(abs(world.start[0]), abs(world.start[1])) < half - 0.1  # the robot starts in the room
+            world = dataclasses.replace(world, layout=plain.layout, landmark_path=plain.landmark_path,
+                                        config=dataclasses.replace(world.config, landmarks=plain.config.landmarks,
+                                                                   room=plain.config.room))
+        assert world == plain, seed
+    assert abs(drawn - 40 * P.share) <= 3.0 * math.sqrt(40 * P.share * (1.0 - P.share))  # the configured share
