@@ -118,6 +118,13 @@ def draw_layout(rng: np.random.Generator, p: DrawnLayoutParams) -> DrawnLayout:
     return DrawnLayout(kind, half, LandmarkMap(tuple(landmarks)))
 
 
+def sample_layout(kind: str, p: DrawnLayoutParams) -> DrawnLayout:
+    """The first layout of ``kind`` drawn from seeds 0, 1, ...: one fixed room of each kind (tests, benchmarks)."""
+    if kind not in KINDS:
+        raise ValueError(f"layout kind {kind!r}: one of {', '.join(KINDS)}")
+    return next(layout for layout in (draw_layout(np.random.default_rng(seed), p) for seed in range(1000)) if layout.kind == kind)
+
+
 def layout_yaml(layout: DrawnLayout) -> str:
     """The layout as a landmark file (config/landmarks format, docs/landmarks.md)."""
     rows = []

@@ -13,7 +13,8 @@ import pytest
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import load_landmark_map
-from nao_sim.layouts import BALL_COLOURS, COLOURS_USED, DICTIONARY_SIZE, KINDS, WALL_GAP, draw_layout, layout_file
+from nao_sim.layouts import (BALL_COLOURS, COLOURS_USED, DICTIONARY_SIZE, KINDS, WALL_GAP, draw_layout, layout_file,
+                             sample_layout)
 from nao_sim.randomize import load_randomizer, random_world
 
 RANDOMIZER = load_randomizer()
@@ -75,6 +76,10 @@ def test_a_drawn_layout_is_a_landmark_file_that_reads_back_the_same_under_one_na
         path = layout_file(layout)
         assert load_landmark_map(path) == layout.landmarks
         assert layout_file(draw_layout(np.random.default_rng(LAYOUTS.index(layout)), P)) == path
+    for kind in KINDS:  # the fixed sample rooms of the tests and the localization benchmark
+        assert sample_layout(kind, P).kind == kind and sample_layout(kind, P) == sample_layout(kind, P)
+    with pytest.raises(ValueError, match="'walls': one of aruco, colour, mixed"):
+        sample_layout("walls", P)
 
 
 def test_drawn_layouts_replace_the_layout_of_a_share_of_worlds_and_change_nothing_else():

@@ -28,6 +28,8 @@ from agent.self_calibration import corrected
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import compose, planar_transform, relative, rot_x, rot_y, wrap_angle
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
+from nao_sim.layouts import KINDS, layout_file, sample_layout
+from nao_sim.randomize import load_randomizer
 from nao_sim.render import COLOURS_BGR
 from nao_sim.scenarios import load_sim_config
 from nao_core.robot_model import load_robot_model
@@ -111,6 +113,38 @@ def test_layout_fixes_on_rendered_frames_with_roll_and_pitch_left_out_of_T_BC(pa
         errors.append(pose_error(fix.pose, truth)[0])
     assert errors, "the sample must give fixes"
     assert fixed_posed >= 0.9 * posed  # (the sparse layout's views mostly hold one marker: few are well posed)
+    assert max(errors) <= 2 * params.max_position_std and np.median(errors) <= 0.01
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_rooms_drawn_as_users_lay_them_out_give_fixes_within_5_cm_where_the_lookout_looks(params, perception, robot, kind):
+    """A room drawn as users lay them out (nao_sim/layouts.py ``sample_layout``: markers, balls or
+    both on three or four walls at 0.15-0.8 m), VGA, the robot 0.6-1.1 m from the object and its head
+    turned to the landmark nearest its heading (a lookout's gaze: aimed at the object, the head sees
+    few of them here), T_BC missing +-0.3 deg of roll and pitch, no prior. Every fix is within 5 cm
+    (2 sigma of the precision gate) and the median within 1 cm; how many frames give one is the
+    localization benchmark's (docs/benchmarks.md: far balls at the camera's height defeat the
+    two-blob seed)."""
+    drawn = sample_layout(kind, load_randomizer().drawn_layout)
+    world = SimWorld("can", robot, "vga", seed=11, config=load_sim_config().with_layout(str(layout_file(drawn)), drawn.half_size))
+    camera = camera_of(robot, "vga")
+    localizer = RobotLocalizer(params, world.landmarks, camera, perception)
+    rng = np.random.default_rng(11)
+    ox, oy = world.scenario.position
+    errors = []
+    for _ in range(30):
+        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
+        truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
+        off_heading = [abs(wrap_angle(math.atan2(lm.position[1] - truth[1], lm.position[0] - truth[0]) - truth[2]))
+                       for lm in world.landmarks.landmarks]
+        world.teleport(truth, robot.look_at(truth, world.landmarks.landmarks[int(np.argmin(off_heading))].position))
+        frame = world.render()
+        roll, pitch = rng.choice([-1.0, 1.0], 2) * math.radians(0.3)
+        localizer.reset()
+        fix = localizer.measure(frame.image, rot_x(roll) @ rot_y(pitch) @ frame.T_BC)
+        if fix is not None:
+            errors.append(pose_error(fix.pose, truth)[0])
+    assert len(errors) >= 10, "the lookout's views must give fixes"
     assert max(errors) <= 2 * params.max_position_std and np.median(errors) <= 0.01
 
 

@@ -375,20 +375,24 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     objects = sorted({r.world["object"] for r in results})
     bare = [r for r in results if r.world.get("bare_naoqi")]
     blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= BLURRED]
-    drawn = load_randomizer()
+    ranges = load_randomizer()
+    users = [r for r in results if r.world["layout"].startswith("drawn")]
     lines = [
         f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
-        f"against the stand-in (YUV422, latency, drops, clock offset; {100 * drawn.bare_naoqi:g} % of them a bare NAOqi: "
-        "docs/bridge.md), in a random landmark layout, with a random object, start pose "
-        f"({drawn.start_distance[0]:g}-{drawn.start_distance[1]:g} m, object up to {math.degrees(drawn.start_bearing):.0f} deg off the heading), "
-        f"walking errors, sway, a camera calibration off by {100 * drawn.focal_error:g} % and {drawn.principal_error:g} px, the camera "
-        f"rolled up to {math.degrees(drawn.mount_error[0]):.1f} deg and pitched up to {math.degrees(drawn.mount_error[1]):.1f} deg on its mount "
+        f"against the stand-in (YUV422, latency, drops, clock offset; {100 * ranges.bare_naoqi:g} % of them a bare NAOqi: "
+        "docs/bridge.md), in a random landmark layout (one of config/landmarks, or for "
+        f"{100 * ranges.drawn_layout.share:g} % of the worlds one drawn as users lay them out: a room of "
+        f"{2 * ranges.drawn_layout.half_size[0]:g}-{2 * ranges.drawn_layout.half_size[1]:g} m, markers or balls or both on "
+        f"{ranges.drawn_layout.walls[0]}-{ranges.drawn_layout.walls[1]} walls; nao_sim/layouts.py), with a random object, start pose "
+        f"({ranges.start_distance[0]:g}-{ranges.start_distance[1]:g} m, object up to {math.degrees(ranges.start_bearing):.0f} deg off the heading), "
+        f"walking errors, sway, a camera calibration off by {100 * ranges.focal_error:g} % and {ranges.principal_error:g} px, the camera "
+        f"rolled up to {math.degrees(ranges.mount_error[0]):.1f} deg and pitched up to {math.degrees(ranges.mount_error[1]):.1f} deg on its mount "
         "(unreported), and a sensor "
-        f"of {drawn.pixel_sigma[0]:g}-{drawn.pixel_sigma[1]:g} grey levels of noise, {drawn.blur_sigma[0]:g}-{drawn.blur_sigma[1]:g} px of blur "
-        f"and {drawn.exposure[0]:g}-{drawn.exposure[1]:g} of the brightness, its shutter open {1e3 * drawn.shutter[0]:g}-{1e3 * drawn.shutter[1]:g} ms "
-        f"(motion blur), in a room painted one of {len(drawn.floor_colors)} floors and {len(drawn.wall_colors)} walls, lit from any azimuth "
-        f"{math.degrees(drawn.light_elevation[0]):.0f}-{math.degrees(drawn.light_elevation[1]):.0f} deg up with "
-        f"{drawn.ambient[0]:g}-{drawn.ambient[1]:g} of ambient light. Errors over completed missions (centre: the result's, the carved model's "
+        f"of {ranges.pixel_sigma[0]:g}-{ranges.pixel_sigma[1]:g} grey levels of noise, {ranges.blur_sigma[0]:g}-{ranges.blur_sigma[1]:g} px of blur "
+        f"and {ranges.exposure[0]:g}-{ranges.exposure[1]:g} of the brightness, its shutter open {1e3 * ranges.shutter[0]:g}-{1e3 * ranges.shutter[1]:g} ms "
+        f"(motion blur), in a room painted one of {len(ranges.floor_colors)} floors and {len(ranges.wall_colors)} walls, lit from any azimuth "
+        f"{math.degrees(ranges.light_elevation[0]):.0f}-{math.degrees(ranges.light_elevation[1]):.0f} deg up with "
+        f"{ranges.ambient[0]:g}-{ranges.ambient[1]:g} of ambient light. Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
         "origin to the object's outline), the wall distance the least from it to the room's walls; focal error: the camera the mission ended with against the world's, "
         "self-calibrated or configured; tilt error: the larger of the learnt camera roll's and pitch's on its mount against the world's "
@@ -400,7 +404,8 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
         stats(results, "**all**"),
         "",
         f"Through a bare NAOqi: {sum(r.outcome == 'completed' for r in bare)}/{len(bare)} completed; sensor blur "
-        f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed.",
+        f"of {BLURRED:g} px or more: {sum(r.outcome == 'completed' for r in blurred)}/{len(blurred)} completed; in a drawn layout: "
+        f"{sum(r.outcome == 'completed' for r in users)}/{len(users)} completed.",
         "",
         "| seed | layout | object | outcome | centre (mm) | filter centre (mm) | radius (mm) | IoU | pose error median / p95 (mm) | keyframe misalignment median / max (px) | heading error median (mrad) | clearance (m) | wall distance (m) | duration (s) | stop after decision (ms) | focal error (%) | tilt error roll / pitch (deg) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",

@@ -1,7 +1,8 @@
 """Localization per landmark layout on rendered still frames (issue targets: a fix on >= 90 % of the
 frames that show >= 2 landmarks, median error <= 1 cm, no fix off by more than 5 cm).
 
-For each layout of config/landmarks (the 4 x 4 m ones in a room of half size 2 m), VIEWS views of
+For each layout of config/landmarks (the 4 x 4 m ones in a room of half size 2 m), and one room of each
+kind drawn as users lay them out (nao_sim/layouts.py ``sample_layout``: markers, balls, both), VIEWS views of
 the can from 0.6-1.1 m at a random azimuth, the robot's heading 0.2 rad (1 sigma) off the object,
 the head aimed at the object (``RobotModel.look_at``), VGA, simulator noise. Counted: the frames
 with >= 2 landmarks wholly in the image (a marker's four corners facing the camera, a ball with its
@@ -39,6 +40,8 @@ from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_y, wrap_angle
 from nao_core.robot_model import load_robot_model
+from nao_sim.layouts import KINDS, layout_file, sample_layout
+from nao_sim.randomize import load_randomizer
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
@@ -51,13 +54,20 @@ MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degre
 
 
 
-def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
+def _rooms() -> List[Tuple[str, str, float]]:
+    """(name, landmark file, room half size) of every layout benchmarked."""
+    drawn = [(f"drawn {kind}", sample_layout(kind, load_randomizer().drawn_layout)) for kind in KINDS]
+    return ([(name, str(CONFIG_DIR / "landmarks" / f"{name}.yaml"), half) for name, half in LAYOUTS.items()]
+            + [(name, str(layout_file(layout)), layout.half_size) for name, layout in drawn])
+
+
+def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str]:
     """The table rows of one layout, and its ratio row (edge-line corners / cornerSubPix corners)."""
     robot = load_robot_model()
     params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
     perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
-    config = load_sim_config().with_layout(f"landmarks/{name}.yaml", half_size)
+    config = load_sim_config().with_layout(landmarks, half_size)
     world = SimWorld("can", robot, "vga", seed=1, config=config)
     tilted_config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, mount_error=tuple(math.radians(a) for a in MOUNT_DEG)))
     tilted = SimWorld("can", robot, "vga", seed=1, config=tilted_config)
@@ -123,7 +133,7 @@ def _layout(name: str, half_size: float) -> Tuple[List[str], str]:
 
 
 def run() -> str:
-    results = [_layout(name, half) for name, half in LAYOUTS.items()]
+    results = [_layout(*room) for room in _rooms()]
     return "\n".join([
         "## Localization per landmark layout",
         "",
