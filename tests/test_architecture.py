@@ -4,7 +4,8 @@
 
 The bridge stays light (no SciPy, no algorithms) and reaches the simulator only through its thin
 simulated backend, imported for ``--sim``; the 2-D planner simulation closes the loop around the
-agent's planner, so it alone in nao_sim imports agent.
+agent's planner, so it alone in nao_sim imports agent. The suite's own shape: a test module that starts processes or
+sessions is marked ``serial`` (Makefile ``test`` runs those alone, docs/testing.md).
 """
 
 from __future__ import annotations
@@ -66,3 +67,30 @@ def test_exceptions_are_still_needed():
     """Each allowed exception is used; an unused one would silently widen the arrows."""
     used = {(f, m.split(".")[0]) for package in ALLOWED for f, m in imports(package)}
     assert EXCEPTIONS <= used
+
+
+# What a test needs to start a process, a session or a paced simulator (tests/zenoh_peers.py, tools/matrix.py)
+PROCESS_NAMES = {"subprocess", "Popen", "StandIn", "SimBackend", "bridge_on_standin", "run_mission", "zenoh",
+                 "ci_mission", "BridgeLink"}
+
+
+def test_test_modules_that_start_processes_are_marked_serial():
+    """A module naming any of PROCESS_NAMES carries ``pytest.mark.serial`` (on the module or on its
+    tests that do): unmarked, `make test` would run it beside another test on a loaded core. A
+    module's unmarked test that starts one beside marked ones is not caught."""
+    unmarked = []
+    for path in sorted((ROOT / "tests").glob("test_*.py")):
+        text = path.read_text()
+        names = set()
+        for node in ast.walk(ast.parse(text, filename=str(path))):
+            if isinstance(node, ast.Name):
+                names.add(node.id)
+            elif isinstance(node, ast.Attribute):
+                names.add(node.attr)
+            elif isinstance(node, ast.arg):
+                names.add(node.arg)
+            elif isinstance(node, (ast.Import, ast.ImportFrom)):
+                names.update(alias.name.split(".")[0] for alias in node.names)
+        if names & PROCESS_NAMES and "pytest.mark.serial" not in text:
+            unmarked.append((path.name, sorted(names & PROCESS_NAMES)))
+    assert not unmarked
