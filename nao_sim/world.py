@@ -49,7 +49,7 @@ from typing import Callable, Deque, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
-from nao_core.geometry import Pose, planar_transform, rot_x, rot_y
+from nao_core.geometry import Pose, planar_transform, rot_x, rot_y, wrap_angle
 from nao_core.landmark_map import load_landmark_map
 from nao_core.records import CameraFrame, RobotState
 from nao_core.robot_model import RobotModel, nao_to_optical
@@ -442,6 +442,13 @@ class SimWorld:
                     ],
                 },
             }
+
+
+def orbit_pose(rng: np.random.Generator, centre: Tuple[float, float]) -> Pose:
+    """A pose on the pilot's orbit round ``centre``: 0.6-1.1 m from it at an azimuth U(-pi, pi),
+    heading at it within N(0, 0.2 rad) (the still views of tests and benchmarks)."""
+    d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
+    return (centre[0] + d * math.cos(az), centre[1] + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
 
 
 def _pose_tuple(a: np.ndarray) -> Pose:

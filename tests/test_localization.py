@@ -33,7 +33,7 @@ from nao_sim.randomize import load_randomizer
 from nao_sim.render import COLOURS_BGR
 from nao_sim.scenarios import load_sim_config
 from nao_core.robot_model import load_robot_model
-from nao_sim.world import SimWorld
+from nao_sim.world import SimWorld, orbit_pose
 
 
 @pytest.fixture(scope="module")
@@ -95,8 +95,7 @@ def test_layout_fixes_on_rendered_frames_with_roll_and_pitch_left_out_of_T_BC(pa
     posed = fixed_posed = 0
     errors = []
     for _ in range(30):
-        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
-        truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
+        truth = orbit_pose(rng, (ox, oy))
         world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
         if landmarks_in_image(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) < 2:
@@ -133,8 +132,7 @@ def test_rooms_drawn_as_users_lay_them_out_give_fixes_within_5_cm_where_the_look
     ox, oy = world.scenario.position
     errors = []
     for _ in range(30):
-        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
-        truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
+        truth = orbit_pose(rng, (ox, oy))
         off_heading = [abs(wrap_angle(math.atan2(lm.position[1] - truth[1], lm.position[0] - truth[0]) - truth[2]))
                        for lm in world.landmarks.landmarks]
         world.teleport(truth, robot.look_at(truth, world.landmarks.landmarks[int(np.argmin(off_heading))].position))

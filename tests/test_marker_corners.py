@@ -14,10 +14,9 @@ import pytest
 from agent.localization import LandmarkDetector, LocalizationParams, subpix_corners
 from agent.marker_corners import refine_corners
 from nao_core.config import CONFIG_DIR, load
-from nao_core.geometry import wrap_angle
 from nao_core.robot_model import load_robot_model
 from nao_sim.scenarios import load_sim_config
-from nao_sim.world import SimWorld
+from nao_sim.world import SimWorld, orbit_pose
 
 PARAMS = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
 DICTIONARY = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
@@ -90,8 +89,7 @@ def wall_views(count: int, blur: float = 0.0):
     rng = np.random.default_rng(2)
     ox, oy = world.scenario.position
     for _ in range(count):
-        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
-        pose = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0, 0.2)))
+        pose = orbit_pose(rng, (ox, oy))
         world.teleport(pose, robot.look_at(pose, (ox, oy, 0.1)))
         gray = cv2.cvtColor(world.render().image, cv2.COLOR_BGR2GRAY)
         T_WC = np.array(world.truth()["camera"]["T_WC"])

@@ -38,12 +38,12 @@ from agent.camera import CameraModel
 from agent.localization import LocalizationParams, RobotLocalizer, landmarks_in_image
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
-from nao_core.geometry import rot_x, rot_y, wrap_angle
+from nao_core.geometry import rot_x, rot_y
 from nao_core.robot_model import load_robot_model
 from nao_sim.layouts import KINDS, layout_file, sample_layout
 from nao_sim.randomize import load_randomizer
 from nao_sim.scenarios import load_sim_config
-from nao_sim.world import SimWorld
+from nao_sim.world import SimWorld, orbit_pose
 
 VIEWS = 80
 TILT = math.radians(0.3)  # rad, the roll and the pitch T_BC misses
@@ -56,7 +56,8 @@ MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degre
 
 def _rooms() -> List[Tuple[str, str, float]]:
     """(name, landmark file, room half size) of every layout benchmarked."""
-    drawn = [(f"drawn {kind}", sample_layout(kind, load_randomizer().drawn_layout)) for kind in KINDS]
+    ranges = load_randomizer().drawn_layout
+    drawn = [(f"drawn {kind}", sample_layout(kind, ranges)) for kind in KINDS]
     return ([(name, str(CONFIG_DIR / "landmarks" / f"{name}.yaml"), half) for name, half in LAYOUTS.items()]
             + [(name, str(layout_file(layout)), layout.half_size) for name, layout in drawn])
 
@@ -86,8 +87,7 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
     ox, oy = world.scenario.position
     rows = {mode: {"errors": [], "nees": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
     for _ in range(VIEWS):
-        d, az = rng.uniform(0.6, 1.1), rng.uniform(-math.pi, math.pi)
-        truth = (ox + d * math.cos(az), oy + d * math.sin(az), wrap_angle(az + math.pi + rng.normal(0.0, 0.2)))
+        truth = orbit_pose(rng, (ox, oy))
         world.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
         frame = world.render()
         tilted.teleport(truth, robot.look_at(truth, (ox, oy, 0.1)))
