@@ -93,20 +93,38 @@ within ``hypothesis_gate_px`` of its prediction are its consensus, and the large
 refined jointly and re-gated. A single marker has two planar solutions that nearly explain its
 corners (turned either way about the line of sight, IPPE's two solutions): both seed the
 refinement; the best wins when the other's squared residuals are larger by at least
-``single_marker_evidence`` pixel variances (or fail ``max_reprojection_px``), else the one the
+``solution_evidence`` pixel variances (or fail ``max_reprojection_px``), else the one the
 prior's Mahalanobis distance prefers; when neither decides, there is no fix.
 
 Cold start with repeated colours: of the ``max_search_blobs`` largest blobs (round-robin over the
 colours; clutter of a landmark colour must not make the search explode), every pair of blobs and
-every pair of distinct landmarks of
-their colours is a minimal hypothesis (the linear seed on two points); those with |(a, b)| within
-``pair_scale_tolerance`` of 1 are scored by the blobs that have a landmark of their colour
-predicted within ``color_gate`` px (each landmark claimed once). The best consensus of at least
-``min_points`` blobs is refined (a hypothesis with a landmark out of ``max_range`` or behind the
-camera, or the robot more than ``max_outside_balls`` outside the floor the map's balls enclose,
-agent/keep_in.py, is none: a wrong one placed the robot 2 m behind a wall, matrix seed 30); it must
-beat every hypothesis with a different pose (more than
-``ambiguity_distance`` away) by one blob, or there is no fix (the layout is symmetric from here).
+every pair of distinct landmarks of their colours is a minimal hypothesis (the linear seed on two
+points), kept when |(a, b)| is within ``pair_scale_tolerance`` of 1. The pair ranges by the points'
+rows, so it fails for far balls near the camera's height: their elevation (0.1 deg at 3 m) is below
+the pitch T_BC misses (0.3 deg), and no pair's scale comes near 1 (docs/benchmarks.md, drawn colour
+room). Every three of the first ``max_triple_blobs`` blobs and three distinct landmarks of their
+colours is a hypothesis too, solved from the bearings alone (three-blob resection), which pitch
+hardly moves. A blob's ray in the body frame, d = R_BC K^-1 (u, v, 1), seen from the camera centre
+c = T_BC's translation, has the horizontal direction (d_x, d_y) (normalised); the landmark lies on it
+when the cross product vanishes,
+
+    (X_B.x - c_x) d_y - (X_B.y - c_y) d_x = 0,
+    a (X d_y - Y d_x) + b (Y d_y + X d_x) + p d_y - q d_x = c_x d_y - c_y d_x,
+
+linear in v = (a, b, p, q). Three rows M v = r leave a line v = v0 + t n (v0 the least-norm
+solution, n the null vector of M); |(a, b)| = 1 on it is a quadratic in t, so up to two poses,
+kept when every landmark lies ahead on its ray (not behind the camera on the same line). A rank below
+three (repeated or collinear landmarks) or no real root is no hypothesis. Every hypothesis
+with a landmark out of ``max_range`` or behind the camera, or the robot more than
+``max_outside_balls`` outside the floor the map's balls enclose (agent/keep_in.py: a wrong one placed
+the robot 2 m behind a wall, matrix seed 30), is dropped; the rest are scored by the blobs whose
+nearest landmark of their colour is predicted within ``color_gate`` px (each landmark claimed once).
+The distinct poses within one blob of the best consensus (of at least ``min_points``) are refined;
+the one with the most points and then the least cost (squared residuals plus the tilt prior's
+p_t^T Sigma_t^-1 p_t in pixel variances: a wrong triple at one height fits its bearings exactly and
+its rows only with the camera tilted) wins, unless a pose more than ``ambiguity_distance`` away has as
+many points and a cost within ``solution_evidence`` pixel variances: then there is no fix (the layout
+is symmetric from here).
 
 Gates on the final fit: reprojection RMS <= ``max_reprojection_px`` (a NaN fails); a torso roll
 |delta| > ``max_roll_sigmas`` max(``roll_sigma``, sqrt(Sigma_t,roll)) (the walking prior, also while
@@ -214,8 +232,9 @@ class LocalizationParams:
     still_motion: float = field(metadata=bounds(0.0, 0.1))  # m and rad: odometry moving less than this per reading is standing (sensor jitter)
     still_settle: float = field(metadata=bounds(0.0, 10.0))  # s: ... once it has not moved for this long (a walk's odometry pauses between readings)
     max_search_blobs: int = field(metadata=bounds(2, 100))  # the cold-start search uses at most this many blobs (largest first)
+    max_triple_blobs: int = field(metadata=bounds(3, 100))  # ... its three-blob hypotheses the first this many of them
     pair_scale_tolerance: float = field(metadata=bounds(0.0, 1.0))  # |(cos, sin)| of a two-blob hypothesis within this of 1
-    single_marker_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (in pixel variances) that decides a marker's two solutions
+    solution_evidence: float = field(metadata=bounds(0.0, 1000.0))  # squared-residual gap (pixel variances) that decides two poses explaining the same points
     ambiguity_distance: float = field(metadata=bounds(0.0, 10.0))  # m: rival hypotheses further apart than this are distinct
     max_range: float = field(metadata=bounds(0.1, 100.0))  # m: a hypothesis placing a landmark further than this from the camera is rejected
     max_outside_balls: float = field(metadata=bounds(0.0, 100.0))  # m: ... or the robot further than this outside the floor the balls enclose
@@ -351,6 +370,13 @@ class PlanarModel:
         X_T = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]) @ _tilt(p).T
         return X_T @ self.R_CB.T + self.t_CB
 
+    def to_cameras(self, poses: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """X_C (H x N x 3) of world points X (H x N x 3, or N x 3 for all) from planar poses (H x 3), untilted."""
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        dx, dy = X[..., 0] - poses[:, 0:1], X[..., 1] - poses[:, 1:2]
+        X_B = np.stack([c * dx + s * dy, -s * dx + c * dy, np.broadcast_to(X[..., 2], dx.shape)], axis=-1)
+        return X_B @ self.R_CB.T + self.t_CB
+
     def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
         X_C = self.to_camera(p, X)
@@ -458,6 +484,46 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
         if np.all(np.isfinite(T_WB)):
             seeds.append(np.array([T_WB[0, 3], T_WB[1, 3], math.atan2(T_WB[1, 0], T_WB[0, 0])]))
     return seeds
+
+
+def _pixels(model: PlanarModel, X_C: np.ndarray) -> np.ndarray:
+    """Pinhole pixels (... x 2) of camera points (... x 3), NaN behind the camera."""
+    z = X_C[..., 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = model.f * X_C[..., :2] / z + model.c
+    return np.where(z > 1e-9, uv, np.nan)
+
+
+def _triple_poses(model: PlanarModel, X: np.ndarray, u: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(x, y, theta) of every three-point hypothesis (H x 3 x 3, H x 3 x 2) from the points' bearings
+    alone, and its points (module docstring, "three-blob resection"): up to two poses each."""
+    n = (u - model.c) / model.f
+    d_B = np.concatenate([n, np.ones(n.shape[:-1] + (1,))], axis=-1) @ model.R_CB  # R_BC d_C, row vectors
+    d = d_B[..., :2] / np.linalg.norm(d_B[..., :2], axis=-1, keepdims=True)
+    c = model.T_BC[:2, 3]
+    M = np.stack([X[..., 0] * d[..., 1] - X[..., 1] * d[..., 0], X[..., 1] * d[..., 1] + X[..., 0] * d[..., 0],
+                  d[..., 1], -d[..., 0]], axis=-1)
+    r = c[0] * d[..., 1] - c[1] * d[..., 0]
+    U, S, Vt = np.linalg.svd(M)
+    ok = S[:, 2] > 1e-9 * S[:, 0]
+    v0 = np.einsum("hij,hi->hj", Vt[:, :3], np.einsum("hji,hj->hi", U, r) / np.where(ok[:, None], S, 1.0))  # least norm
+    null = Vt[:, 3]
+    # |(a, b)| = 1 on the line v0 + t null: A t^2 + B t + C = 0
+    A = null[:, 0] ** 2 + null[:, 1] ** 2
+    B = 2.0 * (v0[:, 0] * null[:, 0] + v0[:, 1] * null[:, 1])
+    C = v0[:, 0] ** 2 + v0[:, 1] ** 2 - 1.0
+    disc = B**2 - 4.0 * A * C
+    ok &= (A > 1e-12) & (disc >= 0.0)
+    root = np.sqrt(np.where(ok, disc, 0.0))
+    A = np.where(ok, A, 1.0)
+    v = np.concatenate([v0 + ((-B + root) / (2 * A))[:, None] * null, v0 + ((-B - root) / (2 * A))[:, None] * null])
+    poses, points, rays = _pose_of(v), np.concatenate([X, X]), np.concatenate([d, d])
+    # the landmarks ahead on their rays, not behind the camera on the same lines
+    ca, sa = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    dx, dy = points[..., 0] - poses[:, 0:1], points[..., 1] - poses[:, 1:2]
+    ahead = np.all((ca * dx + sa * dy - c[0]) * rays[..., 0] + (-sa * dx + ca * dy - c[1]) * rays[..., 1] > 0.0, axis=1)
+    keep = np.concatenate([ok, ok]) & ahead
+    return poses[keep], points[keep]
 
 
 def tilt_information(pixel_sigma: float, covariance: np.ndarray) -> np.ndarray:
@@ -1008,11 +1074,11 @@ class RobotLocalizer:
         solutions.sort(key=lambda s: s[1])
         passing = [s for s in solutions if s[1] <= self.params.max_reprojection_px]
         # A rival is a different pose whose squared residuals exceed the best one's by less than
-        # ``single_marker_evidence`` pixel variances (a likelihood ratio the corners cannot settle).
+        # ``solution_evidence`` pixel variances (a likelihood ratio the corners cannot settle).
         n = 2 * len(marker)
         variance = max(self.params.pixel_sigma**2, n * passing[0][1] ** 2 / max(1, n - 3)) if passing else 1.0
         distinct = [s for s in passing[1:] if math.hypot(*(s[0][:2] - passing[0][0][:2])) > self.params.ambiguity_distance
-                    and n * (s[1] ** 2 - passing[0][1] ** 2) < self.params.single_marker_evidence * variance]
+                    and n * (s[1] ** 2 - passing[0][1] ** 2) < self.params.solution_evidence * variance]
         if passing and distinct:
             if prior is None:
                 raise _Ambiguous("one marker: two planar solutions explain it and there is no prior to choose",
@@ -1082,7 +1148,7 @@ class RobotLocalizer:
         return points, p, rms, H
 
     def _colour_search(self, model: PlanarModel, markers: _Points, centroids: Dict[str, np.ndarray]):
-        """Cold start: two-blob hypotheses over colour-consistent landmark pairs (module docstring)."""
+        """Cold start: two-blob and three-blob hypotheses over colour-consistent landmarks (module docstring)."""
         # at most max_search_blobs blobs, the largest of each colour first, round-robin over colours
         ranked = sorted(((k, name, uv) for name, uvs in centroids.items() for k, uv in enumerate(uvs)), key=lambda t: t[0])
         ranked = ranked[: self.params.max_search_blobs]
@@ -1094,17 +1160,13 @@ class RobotLocalizer:
         L = np.array([lm.position for lm in lms], dtype=float)
         colour_of = np.array([lm.color for lm in lms])
         same = np.array([[colour_of[j] == blob_colour[b] for j in range(len(lms))] for b in range(len(blobs_uv))]).reshape(len(blobs_uv), len(lms))
-        hyps_X, hyps_u = [], []
-        for b1, b2 in itertools.combinations(range(len(blobs_uv)), 2):
-            for l1, l2 in itertools.product(np.flatnonzero(same[b1]), np.flatnonzero(same[b2])):
-                if l1 != l2:
-                    hyps_X.append(L[[l1, l2]])
-                    hyps_u.append(blobs_uv[[b1, b2]])
-        if not hyps_X:
-            raise NoFix("no colour-consistent pair of blobs")
-        poses = self._pair_poses(model, np.array(hyps_X), np.array(hyps_u))
+        poses = []
+        for k, solve in ((2, self._pair_poses), (3, _triple_poses)):
+            found, X = self._hypotheses(model, blobs_uv[: self.params.max_triple_blobs] if k == 3 else blobs_uv, same, L, k, solve)
+            poses.append(found[self._plausible(model, found, X)])
+        poses = np.concatenate(poses)
         if len(poses) == 0:
-            raise NoFix("no pair of blobs gives a consistent planar pose")
+            raise NoFix("no pair or triple of blobs gives a plausible planar pose")
         scores = self._consensus(model, poses, blobs_uv, same, L, markers)
         top = scores.max()
         if top < self.params.min_points:
@@ -1118,12 +1180,37 @@ class RobotLocalizer:
         fits = [f for f in fits if f[2] <= self.params.max_reprojection_px]
         if not fits:
             raise NoFix("no hypothesis survives refinement")
-        fits.sort(key=lambda f: (-len(f[0]), f[2]))
-        rivals = [f for f in fits[1:] if len(f[0]) >= len(fits[0][0])
-                  and math.hypot(*(f[1][:2] - fits[0][1][:2])) > self.params.ambiguity_distance]
+        # the most points, then the least cost: squared residuals plus the tilt prior's (a wrong triple of
+        # balls at one height fits its bearings exactly and its rows only with the camera tilted)
+        cost = [len(f[0]) * f[2] ** 2 + f[1] @ self._tilt_prior @ f[1] for f in fits]
+        order = sorted(range(len(fits)), key=lambda k: (-len(fits[k][0]), cost[k]))
+        best = fits[order[0]]
+        n = 2 * len(best[0])
+        variance = max(self.params.pixel_sigma**2, n * best[2] ** 2 / max(1, n - 3))
+        rivals = [k for k in order[1:] if len(fits[k][0]) >= len(best[0])
+                  and math.hypot(*(fits[k][1][:2] - best[1][:2])) > self.params.ambiguity_distance
+                  and cost[k] - cost[order[0]] < self.params.solution_evidence * variance]
         if rivals:
             raise NoFix("two distinct poses explain the blobs equally well (symmetric layout from here)")
-        return fits[0]
+        return best
+
+    @staticmethod
+    def _hypotheses(model: PlanarModel, blobs_uv: np.ndarray, same: np.ndarray, L: np.ndarray, k: int,
+                    solve: Callable[[PlanarModel, np.ndarray, np.ndarray], Tuple[np.ndarray, np.ndarray]]
+                    ) -> Tuple[np.ndarray, np.ndarray]:
+        """(poses H x 3, their landmarks H x k x 3) ``solve`` gives for every k blobs matched to k distinct
+        landmarks of their colours."""
+        marks, chosen = [], []
+        for blobs_k in itertools.combinations(range(len(blobs_uv)), k):
+            grid = np.stack(np.meshgrid(*(np.flatnonzero(same[b]) for b in blobs_k), indexing="ij"), axis=-1).reshape(-1, k)
+            ordered = np.sort(grid, axis=1)
+            grid = grid[np.all(ordered[:, 1:] != ordered[:, :-1], axis=1)]  # k distinct landmarks
+            marks.append(grid)
+            chosen.append(np.broadcast_to(blobs_k, grid.shape))
+        marks_all = np.concatenate(marks) if marks else np.zeros((0, k), dtype=int)
+        if len(marks_all) == 0:
+            return np.zeros((0, 3)), np.zeros((0, k, 3))
+        return solve(model, L[marks_all], blobs_uv[np.concatenate(chosen)])
 
     def _associated_fit(self, model: PlanarModel, markers: _Points, centroids: Dict[str, np.ndarray], pose: np.ndarray):
         """Associate from ``pose``, refine, associate again from the refined pose, refine and gate."""
@@ -1134,8 +1221,8 @@ class RobotLocalizer:
             pose, _, _, _ = self._refine(model, points, pose)
         return self._joint(model, points, pose)
 
-    def _pair_poses(self, model: PlanarModel, X: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """(x, y, theta) of every two-point hypothesis (H x 2 x 3, H x 2 x 2) passing the scale check."""
+    def _pair_poses(self, model: PlanarModel, X: np.ndarray, u: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """(x, y, theta) of every two-point hypothesis (H x 2 x 3, H x 2 x 2) passing the scale check, and its points."""
         n = (u - model.c) / model.f
         H = len(X)
         rows, rhs = _linear_rows(X.reshape(-1, 3), n.reshape(-1, 2), model.R_CB, model.t_CB)
@@ -1147,33 +1234,36 @@ class RobotLocalizer:
         v[ok] = np.linalg.solve(rows[ok], rhs[ok][..., None])[..., 0]
         norm = np.hypot(v[:, 0], v[:, 1])
         keep = np.isfinite(norm) & (np.abs(norm - 1.0) <= self.params.pair_scale_tolerance)
-        poses = _pose_of(v[keep])
-        # the two points must be in front of the camera and within reach
-        return np.array([p for p, Xh in zip(poses, X[keep]) if self._plausible(model, p, Xh)]).reshape(-1, 3)
+        return _pose_of(v[keep]).reshape(-1, 3), X[keep]
 
-    def _plausible(self, model: PlanarModel, p: np.ndarray, X: np.ndarray) -> bool:
-        X_C = model.to_camera(p, X)
-        inside = np.all(self._balls.distances(np.asarray(p[:2], float)) >= -self.params.max_outside_balls)
-        return bool(inside and np.all(X_C[:, 2] > MIN_DEPTH) and np.all(np.linalg.norm(X_C, axis=1) < self.params.max_range))
+    def _plausible(self, model: PlanarModel, poses: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """Mask of the hypotheses (poses H x 3, their landmarks H x k x 3) with the robot inside the floor the
+        balls enclose (by ``max_outside_balls``) and every landmark in front within ``max_range``."""
+        if len(poses) == 0:
+            return np.zeros(0, dtype=bool)
+        X_C = model.to_cameras(poses, X)
+        inside = np.all(self._balls.distances(poses[:, :2]) >= -self.params.max_outside_balls, axis=-1)
+        seen = np.all((X_C[..., 2] > MIN_DEPTH) & (np.linalg.norm(X_C, axis=-1) < self.params.max_range), axis=1)
+        return inside & seen
 
     def _consensus(self, model: PlanarModel, poses: np.ndarray, blobs_uv: np.ndarray, same: np.ndarray,
-                   L: np.ndarray, markers: _Points) -> np.ndarray:
-        """Per pose: blobs with a landmark of their colour predicted within the gate (each claimed once), plus marker corners that fit."""
+                   L: np.ndarray, markers: _Points, chunk: int = 2048) -> np.ndarray:
+        """Per pose: blobs whose nearest landmark of their colour is predicted within the gate (each landmark
+        claimed once), plus marker corners that fit."""
         scores = np.zeros(len(poses))
-        for k, p in enumerate(poses):
-            uv, _ = model.project(p, L)
-            d = np.linalg.norm(blobs_uv[:, None, :] - uv[None, :, :], axis=2)
-            d = np.where(same & np.isfinite(d), d, np.inf)
-            near = d <= self.params.color_gate
-            claimed = np.zeros(len(L), dtype=bool)
-            for b in np.argsort(d.min(axis=1)):
-                j = int(np.argmin(d[b]))
-                if near[b, j] and not claimed[j]:
-                    claimed[j] = True
-                    scores[k] += 1
+        for start in range(0, len(poses), chunk):
+            part = poses[start : start + chunk]
+            uv = _pixels(model, model.to_cameras(part, L))
+            d = np.linalg.norm(blobs_uv[None, :, None, :] - uv[:, None, :, :], axis=3)
+            d = np.where(same[None] & np.isfinite(d), d, np.inf)
+            nearest = np.argmin(d, axis=2)
+            claimed = np.where(np.take_along_axis(d, nearest[..., None], axis=2)[..., 0] <= self.params.color_gate, nearest, -1)
+            claimed.sort(axis=1)  # distinct landmarks claimed: each counts once
+            distinct = (claimed >= 0) & np.concatenate([np.ones((len(part), 1), bool), claimed[:, 1:] != claimed[:, :-1]], axis=1)
+            scores[start : start + chunk] = distinct.sum(axis=1)
             if len(markers):
-                uv_m, _ = model.project(p, markers.X)
-                scores[k] += np.sum(np.nan_to_num(np.linalg.norm(uv_m - markers.u, axis=1), nan=np.inf) <= self.params.color_gate)
+                error = np.linalg.norm(_pixels(model, model.to_cameras(part, markers.X)) - markers.u, axis=2)
+                scores[start : start + chunk] += np.sum(np.nan_to_num(error, nan=np.inf) <= self.params.color_gate, axis=1)
         return scores
 
     # -- prediction ----------------------------------------------------------------------------
