@@ -406,11 +406,7 @@ class PlanarModel:
     def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
         X_C = self.to_camera(p, X)
-        z = X_C[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = self.f * X_C[:, :2] / z[:, None] + self.c
-        uv[z <= 1e-9] = np.nan
-        return uv, z
+        return _pixels(self, X_C), X_C[:, 2]
 
     def jacobian(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(uv N x 2, z N, J N x 2 x len(p)) at p = (x, y, theta, delta[, epsilon])."""
@@ -550,6 +546,16 @@ def _triple_poses(model: PlanarModel, X: np.ndarray, u: np.ndarray) -> Tuple[np.
     ahead = np.all((ca * dx + sa * dy - c[0]) * rays[..., 0] + (-sa * dx + ca * dy - c[1]) * rays[..., 1] > 0.0, axis=1)
     keep = np.concatenate([ok, ok]) & ahead
     return poses[keep], points[keep]
+
+
+def camera_rotation(odom: Pose, T_BC: np.ndarray) -> np.ndarray:
+    """R_OC: the camera's orientation in the odometry frame, Rz(odometry heading) R_BC."""
+    return rot_z(odom[2])[:3, :3] @ np.asarray(T_BC, dtype=float)[:3, :3]
+
+
+def camera_rate(R_OC_before: np.ndarray, R_OC: np.ndarray, dt: float) -> np.ndarray:
+    """rad/s, the camera's angular velocity in its own axes from two orientations ``dt`` s apart."""
+    return cv2.Rodrigues(R_OC_before.T @ R_OC)[0].ravel() / dt
 
 
 def tilt_information(pixel_sigma: float, covariance: np.ndarray) -> np.ndarray:
@@ -811,7 +817,8 @@ class RobotLocalizer:
         self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
         self._last_motion = -math.inf  # stamp of the last odometry reading that moved (a mission starts standing)
         self._last_camera: Optional[Tuple[float, np.ndarray]] = None  # (stamp, R_OC) of the last frame
-        self.camera_rate = np.zeros(3)  # rad/s, the camera's angular velocity at the last frame, its optical axes
+        self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
+        # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
 
     @property
@@ -825,7 +832,7 @@ class RobotLocalizer:
         self.covariance = np.full((3, 3), np.nan)
         self.total_covariance = np.full((3, 3), np.nan)
         self.rejected_jumps, self._rejected = 0, None
-        self._last_camera = None  # the last frame's camera says nothing of the next one's rate
+        self._last_camera, self.camera_rate = None, None  # the last frame's camera says nothing of the next one's rate
 
     @property
     def pose(self) -> Optional[Pose]:
@@ -882,13 +889,13 @@ class RobotLocalizer:
         odom = _check_pose(odom, "odom")
         self.on_odometry(odom, stamp)
         prior = self.pose_at(odom)
-        R_OC = rot_z(odom[2])[:3, :3] @ T_BC[:3, :3]
-        self.camera_rate = np.zeros(3)
+        R_OC = camera_rotation(odom, T_BC)
+        self.camera_rate = None
         if self._last_camera is not None and 0.0 < stamp - self._last_camera[0] <= self.params.rate_max_gap:
-            self.camera_rate = cv2.Rodrigues(self._last_camera[1].T @ R_OC)[0].ravel() / (stamp - self._last_camera[0])
+            self.camera_rate = camera_rate(self._last_camera[1], R_OC, stamp - self._last_camera[0])
         self._last_camera = (stamp, R_OC)
         fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still,
-                           self.camera_rate)
+                           np.zeros(3) if self.camera_rate is None else self.camera_rate)
         if fix is None:
             return None
         if prior is not None and not self._accept_jump(prior, fix, odom):
@@ -899,6 +906,13 @@ class RobotLocalizer:
             frame = np.diag([self.params.roll_sigma_still, self.params.pitch_sigma]) ** 2
             self.tilt.update(self.tilt.correct(T_BC), fix.tilt_information, fix.tilt_evidence, frame)
         return fix
+
+    def heading_rate(self) -> Optional[float]:
+        """rad/s: how fast the camera turned about the vertical at the last frame (``camera_rate`` in the
+        odometry frame), None when unknown."""
+        if self.camera_rate is None or self._last_camera is None:
+            return None
+        return abs(float((self._last_camera[1] @ self.camera_rate)[2]))
 
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
                 roll_sigma: Optional[float] = None, camera_rate: Sequence[float] = (0.0, 0.0, 0.0)) -> Optional[PoseFix]:

@@ -153,7 +153,6 @@ from station.outputs import (
 
 Cam = Tuple[float, float, float]
 VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
-TURN_RATE_GAP = 0.5  # s: frames further apart than this give no camera turn rate
 FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
 
 
@@ -242,7 +241,6 @@ class Pilot:
         self.command: Tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.dropped: Counter = Counter()  # frames dropped, by the step that raised
         self._views: Deque[_View] = deque(maxlen=VIEWS_KEPT)
-        self._last_camera: Optional[Tuple[float, float]] = None  # (stamp, camera heading in O) of the last frame
         self.relocalized = 0  # filters rebuilt after a fix moved the pose by more than relocalize_shift
         self._t_plan: Optional[float] = None
         self._t_active: Optional[float] = None
@@ -364,7 +362,7 @@ class Pilot:
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
             T_OC = camera_in_world(tuple(float(v) for v in meta.odom), T_BC)
             cam_odom = (float(T_OC[0, 3]), float(T_OC[1, 3]), optical_axis_heading(T_OC))
-            turn_rate = self._turn_rate(meta.stamp, cam_odom[2])
+            turn_rate = self.localizer.heading_rate()  # from this frame and the last (agent/localization.py)
             stamp_variance = self._stamp_heading_variance(turn_rate, meta.stamp_std)
         with guarded("calibration"):
             self.calibration.on_head(meta.head_yaw, meta.head_pitch, meta.stamp)
@@ -425,14 +423,6 @@ class Pilot:
             return None
         J = np.array([[1.0, 0.0, self.pose[1] - cam[1]], [0.0, 1.0, cam[0] - self.pose[0]], [0.0, 0.0, 1.0]])
         return J @ P @ J.T
-
-    def _turn_rate(self, stamp: float, heading: float) -> Optional[float]:
-        """rad/s: how fast the camera's heading turned in O since the last frame; None for the first or
-        after ``TURN_RATE_GAP`` s."""
-        last, self._last_camera = self._last_camera, (stamp, heading)
-        if last is None or not 0.0 < stamp - last[0] <= TURN_RATE_GAP:
-            return None
-        return abs(wrap_angle(heading - last[1])) / (stamp - last[0])
 
     def _stamp_heading_variance(self, turn_rate: Optional[float], stamp_std: float) -> float:
         """rad^2: the camera heading's variance from a stamp off by max(``stamp_sigma``, ``stamp_std``)
