@@ -919,7 +919,8 @@ class RobotLocalizer:
         """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why).
 
         ``roll_sigma``: prior std of the torso roll T_BC misses (default ``params.roll_sigma``, walking);
-        ``camera_rate``: the camera's angular velocity at capture in its own (optical) frame, rad/s (Smear).
+        ``camera_rate``: the camera's angular velocity at capture in its own (optical) frame, rad/s (Smear);
+        ValueError when it is not three finite numbers.
         """
         self.no_fix_reason = ""
         self.landmarks_seen = 0
@@ -1240,8 +1241,8 @@ class RobotLocalizer:
         colour_of = np.array([lm.color for lm in lms])
         same = np.array([[colour_of[j] == blob_colour[b] for j in range(len(lms))] for b in range(len(blobs_uv))]).reshape(len(blobs_uv), len(lms))
         poses = []
-        for k, solve in ((2, self._pair_poses), (3, _triple_poses)):
-            found, X = self._hypotheses(model, blobs_uv[: self.params.max_triple_blobs] if k == 3 else blobs_uv, same, L, k, solve)
+        for k, solve, searched in ((2, self._pair_poses, len(blobs_uv)), (3, _triple_poses, self.params.max_triple_blobs)):
+            found, X = self._hypotheses(model, blobs_uv[:searched], same, L, k, solve)
             poses.append(found[self._plausible(model, found, X)])
         poses = np.concatenate(poses)
         if len(poses) == 0:
