@@ -548,6 +548,39 @@ def test_hostile_frames_and_poses_never_raise(params, perception, robot, room, p
     assert fix is not None or localizer.no_fix_reason
 
 
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    X=st.lists(st.tuples(*[st.one_of(st.floats(-1e3, 1e3), st.just(0.0), st.just(1.0))] * 3), min_size=3, max_size=3),
+    u=st.lists(st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)), min_size=3, max_size=3),
+    yaw=st.floats(-3.2, 3.2),
+    pitch=st.floats(-1.0, 1.0),
+)
+def test_three_blob_resection_of_hostile_triples_never_raises(robot, X, u, yaw, pitch):
+    """Any three landmarks (repeated, collinear, on the camera's ray, huge) and pixels: the resection
+    returns finite poses, at most two, each with its three landmarks, and never raises."""
+    model = PlanarModel(camera_of(robot, "qvga"), robot.camera_in_robot(yaw, pitch))
+    poses, points = _triple_poses(model, np.array([X], float), np.array([u], float))
+    assert len(poses) <= 2 and points.shape == (len(poses), 3, 3)
+    assert np.all(np.isfinite(poses))
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(discs=st.lists(st.tuples(st.integers(0, 319), st.integers(0, 239), st.integers(2, 12),
+                                st.sampled_from(["green", "yellow", "magenta", "blue"])), max_size=16))
+def test_hostile_colour_blobs_through_the_cold_search_never_raise(params, perception, robot, discs):
+    """Up to 16 discs of the colours room's colours anywhere in a grey frame (clutter, blobs that
+    match no pose): the cold search (pairs and triples) gives a fix or None with a reason."""
+    camera = camera_of(robot, "qvga")
+    localizer = RobotLocalizer(params, load_landmark_map(CONFIG_DIR / "landmarks" / "colours.yaml"), camera, perception)
+    image = np.full((camera.height, camera.width, 3), 128, np.uint8)
+    for x, y, radius, colour in discs:
+        cv2.circle(image, (x, y), radius, COLOURS_BGR[colour], -1)
+    fix = localizer.measure(image, robot.camera_in_robot(0.0, 0.1))
+    assert fix is not None or localizer.no_fix_reason
+    if fix is not None:
+        assert np.all(np.isfinite(fix.pose)) and np.all(np.isfinite(fix.covariance))
+
+
 # -- tracking, covariance, prediction ----------------------------------------------------------
 
 
