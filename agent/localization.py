@@ -249,7 +249,7 @@ class LocalizationParams:
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px
     exposure: float = field(metadata=bounds(0.0, 0.2))  # s, the exposure the camera's motion smear is reckoned with
     smear_width_sigma: float = field(metadata=bounds(0.0, 10.0))  # a marker's width along the smear is uncertain by this share of it
-    rate_max_gap: float = field(metadata=bounds(0.0, 10.0))  # s: the camera's rate from two frames at most this far apart, else 0
+    rate_max_gap: float = field(metadata=bounds(0.0, 10.0))  # s: the camera's rate from two frames at most this far apart, else unknown
     roll_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the torso roll missing from T_BC (walking)
     roll_sigma_still: float = field(metadata=bounds(1e-6, 0.2))  # rad, the same when odometry did not move since the last reading
     pitch_sigma: float = field(metadata=bounds(1e-5, 0.2))  # rad, prior std of the camera pitch missing from T_BC
@@ -398,10 +398,7 @@ class PlanarModel:
 
     def to_cameras(self, poses: np.ndarray, X: np.ndarray) -> np.ndarray:
         """X_C (H x N x 3) of world points X (H x N x 3, or N x 3 for all) from planar poses (H x 3), untilted."""
-        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        dx, dy = X[..., 0] - poses[:, 0:1], X[..., 1] - poses[:, 1:2]
-        X_B = np.stack([c * dx + s * dy, -s * dx + c * dy, np.broadcast_to(X[..., 2], dx.shape)], axis=-1)
-        return X_B @ self.R_CB.T + self.t_CB
+        return _in_bodies(poses, X) @ self.R_CB.T + self.t_CB
 
     def project(self, p: np.ndarray, X: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N x 2, NaN behind the camera) and depths z_C (N)."""
@@ -508,6 +505,13 @@ def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequen
     return seeds
 
 
+def _in_bodies(poses: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """X_B = R(theta)^T (X - (x, y, 0)) (H x N x 3) of world points X (H x N x 3, or N x 3 for all) from planar poses (H x 3)."""
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    dx, dy = X[..., 0] - poses[:, 0:1], X[..., 1] - poses[:, 1:2]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, np.broadcast_to(X[..., 2], dx.shape)], axis=-1)
+
+
 def _pixels(model: PlanarModel, X_C: np.ndarray) -> np.ndarray:
     """Pinhole pixels (... x 2) of camera points (... x 3), NaN behind the camera."""
     z = X_C[..., 2:3]
@@ -541,9 +545,7 @@ def _triple_poses(model: PlanarModel, X: np.ndarray, u: np.ndarray) -> Tuple[np.
     v = np.concatenate([v0 + ((-B + root) / (2 * A))[:, None] * null, v0 + ((-B - root) / (2 * A))[:, None] * null])
     poses, points, rays = _pose_of(v), np.concatenate([X, X]), np.concatenate([d, d])
     # the landmarks ahead on their rays, not behind the camera on the same lines
-    ca, sa = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    dx, dy = points[..., 0] - poses[:, 0:1], points[..., 1] - poses[:, 1:2]
-    ahead = np.all((ca * dx + sa * dy - c[0]) * rays[..., 0] + (-sa * dx + ca * dy - c[1]) * rays[..., 1] > 0.0, axis=1)
+    ahead = np.all(np.einsum("hnk,hnk->hn", _in_bodies(poses, points)[..., :2] - c, rays) > 0.0, axis=1)
     keep = np.concatenate([ok, ok]) & ahead
     return poses[keep], points[keep]
 
@@ -553,7 +555,7 @@ def camera_rotation(odom: Pose, T_BC: np.ndarray) -> np.ndarray:
     return rot_z(odom[2])[:3, :3] @ np.asarray(T_BC, dtype=float)[:3, :3]
 
 
-def camera_rate(R_OC_before: np.ndarray, R_OC: np.ndarray, dt: float) -> np.ndarray:
+def angular_velocity(R_OC_before: np.ndarray, R_OC: np.ndarray, dt: float) -> np.ndarray:
     """rad/s, the camera's angular velocity in its own axes from two orientations ``dt`` s apart."""
     return cv2.Rodrigues(R_OC_before.T @ R_OC)[0].ravel() / dt
 
@@ -892,7 +894,7 @@ class RobotLocalizer:
         R_OC = camera_rotation(odom, T_BC)
         self.camera_rate = None
         if self._last_camera is not None and 0.0 < stamp - self._last_camera[0] <= self.params.rate_max_gap:
-            self.camera_rate = camera_rate(self._last_camera[1], R_OC, stamp - self._last_camera[0])
+            self.camera_rate = angular_velocity(self._last_camera[1], R_OC, stamp - self._last_camera[0])
         self._last_camera = (stamp, R_OC)
         fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still,
                            np.zeros(3) if self.camera_rate is None else self.camera_rate)
@@ -1035,7 +1037,9 @@ class RobotLocalizer:
             tilt_covariance, sway_covariance = tilt_covariance + widening, sway_covariance + widening
             H = H - self._tilt_prior + tilt_information(self.params.pixel_sigma, tilt_covariance)
         G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
-        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(model, points, p, H)) @ G.T + share_covariance
+        uv, _, J = model.jacobian(p, points.X)
+        Jr = J.reshape(-1, 5)
+        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H)) @ G.T + share_covariance
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
@@ -1046,35 +1050,36 @@ class RobotLocalizer:
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         x, y, theta = G @ p
         pose = (float(x), float(y), wrap_angle(float(theta)))
-        uv, _, J = model.jacobian(p, points.X)
-        gain = -G @ np.linalg.solve(H, J.reshape(-1, 5).T @ model.intrinsics_jacobian(uv).reshape(-1, 4))
+        gain = -G @ np.linalg.solve(H, Jr.T @ model.intrinsics_jacobian(uv).reshape(-1, 4))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain)
 
-    def _smear_covariance(self, model: PlanarModel, points: _Points, p: np.ndarray, H: np.ndarray) -> np.ndarray:
+    def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray) -> np.ndarray:
         """The share of (x, y, theta, delta, epsilon)'s covariance from the markers' widths along the smear
-        (module docstring, Smear): sum over markers of g_m g_m^T (sigma_w |s|)^2."""
+        (module docstring, Smear): sum over markers of g_m g_m^T (sigma_w |s|)^2, with the fit's residual
+        Jacobian ``Jr`` (2N x 5) and normal matrix ``H``."""
         length = float(np.linalg.norm(self._smear))
-        C = np.zeros((5, 5))
         if length * self.params.smear_width_sigma == 0.0:
-            return C
+            return np.zeros((5, 5))
         direction = self._smear / length
-        _, _, J = model.jacobian(p, points.X)
-        Jr = J.reshape(-1, 5)
+        stretches = []  # d u / d w_m of each marker: stretched by w_m px along the smear about its centroid
         for group in np.unique(points.group):
             mine = points.group == group
+            if mine.sum() < 4:  # a colour blob: its centroid stays mid-smear
+                continue
             along = (points.u[mine] - points.u[mine].mean(axis=0)) @ direction
             extent = float(along.max() - along.min())
-            if mine.sum() < 4 or extent <= 0.0:  # a colour blob: its centroid stays mid-smear
-                continue
-            stretch = np.zeros((len(points), 2))  # d u_i / d w_m: the marker stretched by w_m px along the smear
-            stretch[mine] = np.outer(along / extent, direction)
-            gain = np.linalg.solve(H, Jr.T @ stretch.ravel())
-            C += np.outer(gain, gain)
-        return (self.params.smear_width_sigma * length) ** 2 * C
+            if extent > 0.0:
+                stretch = np.zeros((len(points), 2))
+                stretch[mine] = np.outer(along / extent, direction)
+                stretches.append(stretch.ravel())
+        if not stretches:
+            return np.zeros((5, 5))
+        gains = np.linalg.solve(H, Jr.T @ np.column_stack(stretches))
+        return (self.params.smear_width_sigma * length) ** 2 * gains @ gains.T
 
     # -- markers -------------------------------------------------------------------------------
 
@@ -1319,8 +1324,6 @@ class RobotLocalizer:
     def _plausible(self, model: PlanarModel, poses: np.ndarray, X: np.ndarray) -> np.ndarray:
         """Mask of the hypotheses (poses H x 3, their landmarks H x k x 3) with the robot inside the floor the
         balls enclose (by ``max_outside_balls``) and every landmark in front within ``max_range``."""
-        if len(poses) == 0:
-            return np.zeros(0, dtype=bool)
         X_C = model.to_cameras(poses, X)
         inside = np.all(self._balls.distances(poses[:, :2]) >= -self.params.max_outside_balls, axis=-1)
         seen = np.all((X_C[..., 2] > MIN_DEPTH) & (np.linalg.norm(X_C, axis=-1) < self.params.max_range), axis=1)

@@ -22,7 +22,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.localization import LocalizationParams, RobotLocalizer, camera_rate, camera_rotation
+from agent.localization import LocalizationParams, RobotLocalizer, angular_velocity, camera_rotation
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model, nao_to_optical
@@ -73,7 +73,7 @@ def turning_fixes(shutter: float, exposures: Tuple[float, ...] = (), rate: float
             middle = world.kinematics_at(frame.stamp - shutter / 2)
             T_BC = nao_to_optical(middle.T_BC_nao)
             R_OC = camera_rotation(middle.odom, T_BC)
-            omega = np.zeros(3) if before is None else camera_rate(before, R_OC, PERIOD)
+            omega = np.zeros(3) if before is None else angular_velocity(before, R_OC, PERIOD)
             before = R_OC
             truth = np.array(world.true_pose())  # turning in place: where it stood mid-exposure too
             prior = tuple(truth + rng.normal(0.0, [0.02, 0.02, 0.01]))
