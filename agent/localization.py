@@ -161,6 +161,23 @@ k_t^2 L + k_s^2 L^2 and ``position_std()`` says what dead reckoning is worth.
 and a fix is fused as a Kalman update with identity measurement: K = P (P + R)^-1,
 p <- p + K wrap(z - p), P <- (I - K) P, then C = p (-) o_capture.
 
+Conditioned fixes. A frame can leave a direction of the pose unobserved: two balls (four equations
+for the pose and the tilt), one far marker, markers bunched far away. Its fix alone is then imprecise
+(std 0.5-1 m along that direction in the colours room) and its estimate wanders along a curved
+valley, where a Kalman update linearized at the fix would take the valley's tangent there for a
+precise measurement across it. Above ``max_position_std_with_prior``, with the prior's covariance P
+known (``on_frame``; ``measure``'s ``prior_covariance``), the frame's points are fitted again from
+the prior with the prior as a term of the cost (a MAP fit, the iterated Kalman update linearized at
+the posterior): the information sigma_px^2 G^T P^-1 G on p, mean (prior, 0, 0) (G p is the pose,
+Pivot). The fit's pose and covariance are the posterior; its points must still reproject within the
+gates, and the fit's whole cost (squared residuals and prior term, in pixel variances: the
+normalized innovation squared, chi-square with 2N dof) stay within its ``conditioned_confidence``
+quantile: a prior 0.5 m off that says 4 cm otherwise meets two balls' bearings by turning the
+heading 8 deg. It is fused as what it is, with the data's information I_d = R_post^-1 - P^-1 (negative
+eigenvalues clipped: the smear's and the pivot's terms are not of the data's information form),
+P <- (P^-1 + I_d)^-1, K = P I_d, and accepted only within the jump gate of P alone; it never
+re-localizes and never teaches the camera tilt (its information is the prior's too).
+
 The intrinsics' share. A focal length 0.5 % off scales every marker range alike, frame after
 frame: fixes share that error, and P, which takes them as independent, shrinks below it (measured
 in the sparse layout: P said 7 mm, the poses were 19 mm off, NEES ~800). With c = (s_x, s_y, d_u,
@@ -216,6 +233,7 @@ from typing import Callable, Dict, Iterable, Iterator, List, Literal, Optional, 
 
 import cv2
 import numpy as np
+from scipy.special import chdtri  # inverse chi-square survival: chi2.ppf(p, k) = chdtri(k, 1 - p)
 
 from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
@@ -269,6 +287,7 @@ class LocalizationParams:
     jump_floor: Tuple[float, float] = field(metadata=bounds(0.0, 10.0))  # (m, rad) always tolerated
     jump_chi2: float = field(metadata=bounds(0.0, 1e9))  # squared Mahalanobis distance of a jump
     gate_floor_std: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # (m, rad) added to P + R_fix in it
+    conditioned_confidence: float = field(metadata=bounds(0.5, 0.999999))  # chi-square quantile a conditioned fit's NIS must be within
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
     color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # colour landmarks only below this many ArUco corners
@@ -307,6 +326,7 @@ class PoseFix:
     tilt_information: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # I_d: the data's on (delta, epsilon), rad^-2
     tilt_evidence: np.ndarray = field(default_factory=lambda: np.zeros(2))  # I_d t_d (agent/camera_tilt.py)
     intrinsics_gain: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))  # G = d(x, y, theta)/d(s_x, s_y, d_u, d_v)
+    conditioned: bool = False  # pose and covariance are the frame's data and the prior's together (module docstring)
 
 
 @dataclass(frozen=True)
@@ -458,11 +478,13 @@ class PlanarModel:
         return _pose_of(v), float(math.hypot(v[0], v[1]))
 
     def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, prior: np.ndarray,
-               iterations: int = 8) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-        """Gauss-Newton on (x, y, theta, delta, epsilon) with the tilt prior's information ``prior``
-        (5 x 5, pixel units, ``tilt_information``): (p, rms, per-point error N, J^T J + prior). Raises NoFix."""
+               iterations: int = 8, mean: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """Gauss-Newton on (x, y, theta, delta, epsilon) with the prior N(``mean``, information ``prior``)
+        (5 x 5, pixel units; the tilt's alone, ``tilt_information``, has mean 0): (p, rms, per-point error N,
+        J^T J + prior). Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
+        mean = np.zeros(5) if mean is None else mean
         for _ in range(iterations):
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
@@ -470,7 +492,9 @@ class PlanarModel:
             r = (uv - target).ravel()
             Jr = J.reshape(-1, 5)
             H = Jr.T @ Jr + prior
-            g = Jr.T @ r + prior @ p
+            offset = p - mean
+            offset[2] = wrap_angle(offset[2])
+            g = Jr.T @ r + prior @ offset
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
                 raise NoFix("non-finite residuals in the planar fit")
             if np.linalg.cond(H) > 1e12:
@@ -822,6 +846,7 @@ class RobotLocalizer:
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
         # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
+        self._pose_prior: Optional[np.ndarray] = None  # the frame's prior pose covariance (conditioned fixes)
 
     @property
     def _moving(self) -> bool:
@@ -897,7 +922,7 @@ class RobotLocalizer:
             self.camera_rate = angular_velocity(self._last_camera[1], R_OC, stamp - self._last_camera[0])
         self._last_camera = (stamp, R_OC)
         fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still,
-                           np.zeros(3) if self.camera_rate is None else self.camera_rate)
+                           np.zeros(3) if self.camera_rate is None else self.camera_rate, self.covariance)
         if fix is None:
             return None
         if prior is not None and not self._accept_jump(prior, fix, odom):
@@ -917,14 +942,17 @@ class RobotLocalizer:
         return abs(float((self._last_camera[1] @ self.camera_rate)[2]))
 
     def measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
-                roll_sigma: Optional[float] = None, camera_rate: Sequence[float] = (0.0, 0.0, 0.0)) -> Optional[PoseFix]:
+                roll_sigma: Optional[float] = None, camera_rate: Sequence[float] = (0.0, 0.0, 0.0),
+                prior_covariance: Optional[np.ndarray] = None) -> Optional[PoseFix]:
         """The pose fix of one frame on its own (no jump gate, no fusion), or None (``no_fix_reason`` says why).
 
         ``roll_sigma``: prior std of the torso roll T_BC misses (default ``params.roll_sigma``, walking);
         ``camera_rate``: the camera's angular velocity at capture in its own (optical) frame, rad/s (Smear);
-        ValueError when it is not three finite numbers.
+        ValueError when it is not three finite numbers. ``prior_covariance`` (3 x 3, of ``prior``): a frame
+        too imprecise alone gives a conditioned fix (module docstring); ignored unless finite and positive.
         """
         self.no_fix_reason = ""
+        self._set_pose_prior(prior_covariance)
         self.landmarks_seen = 0
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         rate = np.asarray(camera_rate, dtype=float)
@@ -937,6 +965,14 @@ class RobotLocalizer:
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
+
+    def _set_pose_prior(self, covariance: Optional[np.ndarray]) -> None:
+        """The frame's prior pose covariance for a conditioned fix: None unless 3 x 3, finite, positive."""
+        self._pose_prior = None
+        if covariance is not None:
+            P = np.asarray(covariance, dtype=float)
+            if P.shape == (3, 3) and np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(0.5 * (P + P.T)) > 0):
+                self._pose_prior = 0.5 * (P + P.T)
 
     def _frame_tilt_covariance(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
         """Prior covariance of (delta, epsilon) at the corrected T_BC: the torso's and the tilt estimate's."""
@@ -971,13 +1007,15 @@ class RobotLocalizer:
         return self._solve(model, markers, lambda: self.detector.color_blobs(image), prior_p)
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
-            groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None) -> Optional[PoseFix]:
+            groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None,
+            prior_covariance: Optional[np.ndarray] = None) -> Optional[PoseFix]:
         """The fix from given correspondences (N x 3 world, N x 2 pixels; ``groups``: marker of each
-        point, default four points per marker; ``roll_sigma`` as for ``measure``), or None
-        (``no_fix_reason`` says why), the camera still. For tests and tools."""
+        point, default four points per marker; ``roll_sigma`` and ``prior_covariance`` as for ``measure``),
+        or None (``no_fix_reason`` says why), the camera still. For tests and tools."""
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         self._smear = np.zeros(2)
+        self._set_pose_prior(prior_covariance)
         try:
             model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
@@ -1037,16 +1075,29 @@ class RobotLocalizer:
             tilt_covariance, sway_covariance = tilt_covariance + widening, sway_covariance + widening
             H = H - self._tilt_prior + tilt_information(self.params.pixel_sigma, tilt_covariance)
         G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
-        uv, _, J = model.jacobian(p, points.X)
-        Jr = J.reshape(-1, 5)
-        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H)) @ G.T + share_covariance
-        if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
-            raise NoFix("fix covariance not positive")
+        covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
         std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
         limit = self.params.max_position_std if prior_p is None else self.params.max_position_std_with_prior
-        if std > limit:
-            raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
-                        f"({len(points.landmark_ids)} landmarks, far or bunched)")
+        conditioned = std > limit
+        if conditioned:
+            if prior_p is None or self._pose_prior is None:
+                raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
+                            f"({len(points.landmark_ids)} landmarks, far or bunched)")
+            # the frame leaves a direction unobserved: its data conditioned on the prior (module docstring, Conditioned fixes)
+            prior_information = (G.T @ (self.params.pixel_sigma**2 * np.linalg.inv(self._pose_prior)) @ G
+                                 + tilt_information(self.params.pixel_sigma, tilt_covariance))
+            mean = np.array([*prior_p[:3], 0.0, 0.0])
+            p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean)
+            offset = p - mean
+            offset[2] = wrap_angle(offset[2])
+            nis = float(np.sum(err**2) + offset @ prior_information @ offset) / self.params.pixel_sigma**2
+            if not (nis <= chdtri(2 * len(points), 1.0 - self.params.conditioned_confidence) and rms <= self.params.max_reprojection_px
+                    and np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px)):
+                raise NoFix(f"fix too imprecise alone (position std {std * 100:.1f} cm), and its points disagree with the "
+                            f"prior (NIS {nis:.1f}, reprojection RMS {rms:.2f} px)")
+            G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
+            covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
+            information, evidence = np.zeros((2, 2)), np.zeros(2)  # the prior's information is not the data's
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         x, y, theta = G @ p
         pose = (float(x), float(y), wrap_angle(float(theta)))
@@ -1055,7 +1106,18 @@ class RobotLocalizer:
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
-                       intrinsics_gain=gain)
+                       intrinsics_gain=gain, conditioned=conditioned)
+
+    def _fix_covariance(self, model: PlanarModel, points: _Points, p: np.ndarray, H: np.ndarray, G: np.ndarray,
+                        share_covariance: np.ndarray, residual_var: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the pose's 3 x 3 covariance, the points' projections, the residual Jacobian 2N x 5) of a fit p
+        with normal matrix H, pivoted by G (module docstring: R_fix, Pivot, Smear)."""
+        uv, _, J = model.jacobian(p, points.X)
+        Jr = J.reshape(-1, 5)
+        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H)) @ G.T + share_covariance
+        if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
+            raise NoFix("fix covariance not positive")
+        return covariance, uv, Jr
 
     def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray) -> np.ndarray:
         """The share of (x, y, theta, delta, epsilon)'s covariance from the markers' widths along the smear
@@ -1422,6 +1484,8 @@ class RobotLocalizer:
     # -- fusion --------------------------------------------------------------------------------
 
     def _accept_jump(self, prior: Pose, fix: PoseFix, odom: Pose) -> bool:
+        if fix.conditioned:  # pulled to the prior: it may move the pose within the prior's covariance, and never re-localizes
+            return self._within_gate(fix.pose, prior, self.covariance)
         if self._within_gate(fix.pose, prior, self.covariance + fix.covariance):
             self.rejected_jumps, self._rejected = 0, None
             return True
@@ -1460,6 +1524,15 @@ class RobotLocalizer:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):
             pose, P = np.array(fix.pose), fix.covariance
             total, self._intrinsics_cross = fix.covariance + G @ Sigma @ G.T, G @ Sigma
+        elif fix.conditioned:  # the posterior already: the data's information I_d = R_post^-1 - P^-1, K = P_post I_d
+            prior_information = np.linalg.inv(self.covariance)
+            w, V = np.linalg.eigh(np.linalg.inv(fix.covariance) - prior_information)
+            data_information = (V * np.maximum(w, 0.0)) @ V.T
+            pose, P = np.array(fix.pose), np.linalg.inv(prior_information + data_information)
+            K = P @ data_information
+            A = np.eye(3) - K  # the fix's gain G is the posterior's, K G already
+            total = A @ self.total_covariance @ A.T + A @ C @ G.T + G @ C.T @ A.T + G @ Sigma @ G.T + K @ P.T
+            self._intrinsics_cross = A @ C + G @ Sigma
         else:
             K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
             pose = np.array(prior) + K @ _difference(fix.pose, prior)

@@ -92,8 +92,8 @@ whose pitch is beyond the 3-sigma gate gives no fix: at most 1 %). The
         localizer = RobotLocalizer(unfloored, LandmarkMap(()), camera)
         frames = {}
 
-        def measure(image, T_BC, prior=None, roll_sigma=None, camera_rate=None):
-            return localizer.fit(X, frames["pixels"], T_BC, prior, roll_sigma=roll_sigma)
+        def measure(image, T_BC, prior=None, roll_sigma=None, camera_rate=None, prior_covariance=None):
+            return localizer.fit(X, frames["pixels"], T_BC, prior, roll_sigma=roll_sigma, prior_covariance=prior_covariance)
 
         localizer.measure = measure
         for k in range(6):

@@ -14,7 +14,10 @@ on its mount not yet learnt (agent/camera_tilt.py: a mission's first standing fr
 tilt learnt*: the same, the tilt learnt (its std at ``camera_tilt_floor``: the rest of a mission's
 standing frames); *still, cold, camera tilted*: the same views in a world whose camera sits MOUNT_DEG
 degrees (roll, pitch down) off on its mount, tilt not learnt (agent/localization.py, Pivot); *prior*:
-with a prior 3.6 cm / 1.1 deg off (tracking); two baselines, cold: *pitch held* to T_BC's
+with a prior 3.6 cm / 1.1 deg off (tracking), the fix alone; *prior with covariance*: the same prior
+with its covariance (std PRIOR_STD), as ``on_frame`` gives it: a frame too imprecise alone gives a fix
+conditioned on the prior (agent/localization.py, Conditioned fixes), whose error is then the
+posterior's (what the fusion would hold); two baselines, cold: *pitch held* to T_BC's
 (``pitch_sigma`` and ``camera_tilt_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
 (``aruco_edge_refinement`` off: the corners biased inwards, agent/marker_corners.py). "well-posed" is
 the share of counted frames whose predicted fix (``predicted_fix`` at the true pose) is within half
@@ -50,6 +53,7 @@ TILT = math.radians(0.3)  # rad, the roll and the pitch T_BC misses
 HELD = 1e-5  # rad, the baseline's pitch prior: held
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
+PRIOR_STD = (0.03, 0.03, 0.02)  # m, m, rad: the covariance the prior says it has
 MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degrees (the matrix draws within these)
 
 
@@ -81,7 +85,8 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
     # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior, the tilted camera's frame)
     solvers = (("cold", localizer, False, False, False), ("still, cold", localizer, False, True, False),
                ("still, cold, tilt learnt", learnt, False, True, False), ("still, cold, camera tilted", localizer, False, True, True),
-               ("prior", localizer, True, False, False), ("cold, pitch held", held, False, False, False),
+               ("prior", localizer, True, False, False), ("prior with covariance", localizer, True, False, False),
+               ("cold, pitch held", held, False, False, False),
                ("cold, cornerSubPix corners", subpix, False, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
@@ -107,7 +112,8 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
                 view = tilted_frame if on_tilted else frame
                 fix = solver.measure(view.image, view.T_BC, None, params.roll_sigma_still)
             else:
-                fix = solver.measure(frame.image, T_BC, prior if with_prior else None)
+                covariance = np.diag(PRIOR_STD) ** 2 if mode == "prior with covariance" else None
+                fix = solver.measure(frame.image, T_BC, prior if with_prior else None, prior_covariance=covariance)
             row["times"].append((time.perf_counter() - begin) * 1e3)
             row["shown"] += 1
             row["posed"] += posed
