@@ -505,15 +505,17 @@ hostile = st.one_of(finite, st.just(math.nan), st.just(math.inf), st.floats(-1e-
     pitch=st.floats(-1.0, 1.0),
     roll=st.floats(-0.5, 0.5),
     prior=st.one_of(st.none(), st.tuples(hostile, hostile, hostile)),
+    prior_covariance=st.one_of(st.none(), st.lists(hostile, min_size=9, max_size=9)),
 )
-def test_hostile_correspondences_never_raise(params, robot, room, n, data, yaw, pitch, roll, prior):
-    """Any point set (degenerate, huge, NaN, behind the camera), any rigid T_BC, any prior: a fix or
-    None with a reason, never an exception."""
+def test_hostile_correspondences_never_raise(params, robot, room, n, data, yaw, pitch, roll, prior, prior_covariance):
+    """Any point set (degenerate, huge, NaN, behind the camera), any rigid T_BC, any prior and prior
+    covariance: a fix or None with a reason, never an exception."""
     X = np.array(data.draw(st.lists(st.tuples(hostile, hostile, hostile), min_size=n, max_size=n))).reshape(-1, 3)
     u = np.array(data.draw(st.lists(st.tuples(hostile, hostile), min_size=n, max_size=n))).reshape(-1, 2)
     localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"))
     T_BC = rot_x(roll) @ robot.camera_in_robot(yaw, pitch)
-    fix = localizer.fit(X, u, T_BC, prior=prior)
+    P = None if prior_covariance is None else np.reshape(prior_covariance, (3, 3))
+    fix = localizer.fit(X, u, T_BC, prior=prior, prior_covariance=P)
     assert fix is not None or localizer.no_fix_reason
     if fix is not None:
         assert np.all(np.isfinite(fix.pose)) and np.all(np.isfinite(fix.covariance))
@@ -1022,3 +1024,23 @@ def test_a_frame_that_disagrees_with_its_prior_gives_no_conditioned_fix(params, 
         assert fix is None, offset
         assert localizer.rejected_jumps == 0
         np.testing.assert_allclose(localizer.pose, truth + offset, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(offset=st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-3.2, 3.2)),
+       stds=st.tuples(*[st.one_of(st.floats(1e-9, 1e3), st.just(0.0), st.just(math.nan), st.just(-0.1))] * 3),
+       noise=st.floats(0.0, 20.0))
+def test_conditioned_fits_of_hostile_priors_never_raise(params, robot, offset, stds, noise):
+    """Two far balls (the frame a conditioned fix comes from) under any prior, however far off, and any
+    prior covariance (tiny, huge, zero, NaN, negative), with pixel noise up to 20 px: a fix or None with
+    a reason, never an exception; a conditioned fix is finite and its covariance positive."""
+    camera = CameraModel.from_fov(640, 480, math.radians(57.0))
+    T_BC = robot.camera_in_robot(0.0, 0.1)
+    X = np.array([[2.6, 0.55, 0.3], [2.9, -0.6, 0.6]])
+    rng = np.random.default_rng(0)
+    pixels = PlanarModel(camera, T_BC).project(np.zeros(3), X)[0] + rng.normal(0.0, noise, (2, 2))
+    localizer = RobotLocalizer(params, LandmarkMap(()), camera)
+    fix = localizer.fit(X, pixels, T_BC, offset, groups=np.arange(2), prior_covariance=np.diag(stds) ** 2)
+    assert fix is not None or localizer.no_fix_reason
+    if fix is not None:
+        assert np.all(np.isfinite(fix.pose)) and np.all(np.linalg.eigvalsh(fix.covariance) > 0)
