@@ -1083,18 +1083,7 @@ class RobotLocalizer:
             if prior_p is None or self._pose_prior is None:
                 raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
                             f"({len(points.landmark_ids)} landmarks, far or bunched)")
-            # the frame leaves a direction unobserved: its data conditioned on the prior (module docstring, Conditioned fixes)
-            prior_information = (G.T @ (self.params.pixel_sigma**2 * np.linalg.inv(self._pose_prior)) @ G
-                                 + tilt_information(self.params.pixel_sigma, tilt_covariance))
-            mean = np.array([*prior_p[:3], 0.0, 0.0])
-            p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean)
-            offset = p - mean
-            offset[2] = wrap_angle(offset[2])
-            nis = float(np.sum(err**2) + offset @ prior_information @ offset) / self.params.pixel_sigma**2
-            if not (nis <= chdtri(2 * len(points), 1.0 - self.params.conditioned_confidence) and rms <= self.params.max_reprojection_px
-                    and np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px)):
-                raise NoFix(f"fix too imprecise alone (position std {std * 100:.1f} cm), and its points disagree with the "
-                            f"prior (NIS {nis:.1f}, reprojection RMS {rms:.2f} px)")
+            p, rms, H = self._conditioned_fit(model, points, prior_p, self._pose_prior, G, tilt_covariance, std)
             G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
             covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
             information, evidence = np.zeros((2, 2)), np.zeros(2)  # the prior's information is not the data's
@@ -1107,6 +1096,24 @@ class RobotLocalizer:
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain, conditioned=conditioned)
+
+    def _conditioned_fit(self, model: PlanarModel, points: _Points, prior_p: np.ndarray, prior_covariance: np.ndarray,
+                         G: np.ndarray, tilt_covariance: np.ndarray, std: float) -> Tuple[np.ndarray, float, np.ndarray]:
+        """(p, rms, H) of the frame's points fitted with the pose prior N(prior_p, prior_covariance) in the
+        cost, the pose G p (module docstring, Conditioned fixes); NoFix when they disagree with the prior
+        (NIS, reprojection gates). ``std``: the fix alone's, for the reason."""
+        prior_information = (G.T @ (self.params.pixel_sigma**2 * np.linalg.inv(prior_covariance)) @ G
+                             + tilt_information(self.params.pixel_sigma, tilt_covariance))
+        mean = np.array([*prior_p[:3], 0.0, 0.0])
+        p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean)
+        offset = p - mean
+        offset[2] = wrap_angle(offset[2])
+        nis = float(np.sum(err**2) + offset @ prior_information @ offset) / self.params.pixel_sigma**2
+        if not (nis <= chdtri(2 * len(points), 1.0 - self.params.conditioned_confidence) and rms <= self.params.max_reprojection_px
+                and np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px)):
+            raise NoFix(f"fix too imprecise alone (position std {std * 100:.1f} cm), and its points disagree with the "
+                        f"prior (NIS {nis:.1f}, reprojection RMS {rms:.2f} px)")
+        return p, rms, H
 
     def _fix_covariance(self, model: PlanarModel, points: _Points, p: np.ndarray, H: np.ndarray, G: np.ndarray,
                         share_covariance: np.ndarray, residual_var: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
