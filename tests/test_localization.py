@@ -595,26 +595,34 @@ class _Clock:
         return self.t
 
 
-def test_walking_fixes_and_odometry_track_the_true_pose(params, perception, robot, room):
-    """Sim: 12 s circling the object (speed-scale error, slip, sway), 5 frames/s at QVGA, states in
-    between: after the first fixes the pose stays within 3 cm of the truth; dead reckoning drifts."""
-    clock = _Clock()
-    world = SimWorld("can", robot, "qvga", seed=3, clock=clock)
-    localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"), perception)
+def _circle(world: SimWorld, localizer: RobotLocalizer, clock: _Clock, robot, frames: int):
+    """The robot circles the object (speed-scale error, slip, sway) with the head on it, 5 frames/s
+    through ``on_frame``, a state between frames: (pose errors (m, rad) once localized, each frame's fix)."""
     obj = (*world.scenario.position, 0.1)
     world.walk(0.08, 0.0, 0.08)
-    errors, fixes = [], 0
-    for _ in range(60):
+    errors, fixes = [], []
+    for _ in range(frames):
         clock.t += 0.1
         world.set_head(*robot.look_at(world.truth()["robot_pose"], obj), 1.0)
         state = world.state()
         localizer.on_odometry(state.odom, state.stamp)
         clock.t += 0.1
         frame = world.render()
-        fixes += localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp) is not None
-        errors.append(pose_error(localizer.pose, world.truth()["robot_pose"]))
-    errors = np.array(errors[5:])
-    assert fixes >= 55
+        fixes.append(localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp))
+        if localizer.pose is not None:
+            errors.append(pose_error(localizer.pose, world.truth()["robot_pose"]))
+    return np.array(errors), fixes
+
+
+def test_walking_fixes_and_odometry_track_the_true_pose(params, perception, robot, room):
+    """Sim: 12 s circling the object (speed-scale error, slip, sway), 5 frames/s at QVGA, states in
+    between: after the first fixes the pose stays within 3 cm of the truth; dead reckoning drifts."""
+    clock = _Clock()
+    world = SimWorld("can", robot, "qvga", seed=3, clock=clock)
+    localizer = RobotLocalizer(params, room, camera_of(robot, "qvga"), perception)
+    errors, fixes = _circle(world, localizer, clock, robot, 60)
+    errors = errors[5:]
+    assert sum(fix is not None for fix in fixes) >= 55
     assert errors[:, 0].max() < 0.03 and errors[:, 0].mean() < 0.015 and errors[:, 1].max() < math.radians(1.5)
     truth = world.truth()
     dead_reckoning = compose(tuple(truth["odom_origin"]), tuple(truth["odom"]))
@@ -1046,35 +1054,21 @@ def test_conditioned_fits_of_hostile_priors_never_raise(params, robot, offset, s
         assert np.all(np.isfinite(fix.pose)) and np.all(np.linalg.eigvalsh(fix.covariance) > 0)
 
 
-def _walk_errors(params, perception, robot, layout: str, seed: int, conditioned: bool):
-    """Sim, rendered VGA frames: 24 s circling the object (speed-scale error, slip, sway), the head on it,
-    5 frames/s, through ``on_frame``; ``conditioned`` False: the prior's covariance withheld, so frames too
-    imprecise alone give no fix (as before conditioned fixes). (pose errors (m, rad) once localized,
-    fixes alone, conditioned fixes)."""
+def _sparse_walk(params, perception, robot, seed: int, conditioned: bool):
+    """24 s of ``_circle`` in the sparse layout at VGA; ``conditioned`` False: the prior's covariance
+    withheld, so frames too imprecise alone give no fix (as before conditioned fixes). (pose errors once
+    localized, fixes alone, conditioned fixes)."""
     clock = _Clock()
-    config = load_sim_config().with_layout(str(CONFIG_DIR / "landmarks" / f"{layout}.yaml"), LAYOUTS[layout])
+    config = load_sim_config().with_layout(str(CONFIG_DIR / "landmarks" / "sparse.yaml"), LAYOUTS["sparse"])
     world = SimWorld("can", robot, "vga", seed=seed, clock=clock, config=config)
     localizer = RobotLocalizer(params, world.landmarks, camera_of(robot, "vga"), perception)
     if not conditioned:
         measure = localizer.measure
         localizer.measure = lambda image, T_BC, prior=None, roll_sigma=None, camera_rate=(0.0, 0.0, 0.0), prior_covariance=None: \
             measure(image, T_BC, prior, roll_sigma, camera_rate)
-    obj = (*world.scenario.position, 0.1)
-    world.walk(0.08, 0.0, 0.08)
-    errors, kinds = [], []
-    for _ in range(120):
-        clock.t += 0.1
-        world.set_head(*robot.look_at(world.truth()["robot_pose"], obj), 1.0)
-        state = world.state()
-        localizer.on_odometry(state.odom, state.stamp)
-        clock.t += 0.1
-        frame = world.render()
-        fix = localizer.on_frame(frame.image, frame.T_BC, frame.odom, frame.stamp)
-        if fix is not None:
-            kinds.append(fix.conditioned)
-        if localizer.pose is not None:
-            errors.append(pose_error(localizer.pose, world.truth()["robot_pose"]))
-    return np.array(errors), kinds.count(False), kinds.count(True)
+    errors, fixes = _circle(world, localizer, clock, robot, 120)
+    kinds = [fix.conditioned for fix in fixes if fix is not None]
+    return errors, kinds.count(False), kinds.count(True)
 
 
 @pytest.mark.parametrize("seed", [6, 7])
@@ -1083,8 +1077,8 @@ def test_walking_in_the_sparse_layout_far_markers_correct_the_pose_conditioned_o
     markers too imprecise alone. Conditioned on the prior (agent/localization.py), they give fixes, and
     the pose's mean error is at most 3/4 of the walk's without them (measured: about half, 7.2 against
     13.7 mm and 3.3 against 6.4 mm), worst within 2.5 cm; the fixes alone are the same either way."""
-    errors, alone, conditioned = _walk_errors(params, perception, robot, "sparse", seed, True)
-    errors_alone, alone_before, none = _walk_errors(params, perception, robot, "sparse", seed, False)
+    errors, alone, conditioned = _sparse_walk(params, perception, robot, seed, True)
+    errors_alone, alone_before, none = _sparse_walk(params, perception, robot, seed, False)
     assert none == 0 and alone == alone_before >= 20 and conditioned >= 30, (alone, alone_before, conditioned)
     assert len(errors) == len(errors_alone) >= 100
     assert errors[:, 0].mean() <= 0.75 * errors_alone[:, 0].mean()
