@@ -846,7 +846,6 @@ class RobotLocalizer:
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
         # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
-        self._pose_prior: Optional[np.ndarray] = None  # the frame's prior pose covariance (conditioned fixes)
 
     @property
     def _moving(self) -> bool:
@@ -952,7 +951,6 @@ class RobotLocalizer:
         too imprecise alone gives a conditioned fix (module docstring); ignored unless finite and positive.
         """
         self.no_fix_reason = ""
-        self._set_pose_prior(prior_covariance)
         self.landmarks_seen = 0
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         rate = np.asarray(camera_rate, dtype=float)
@@ -961,18 +959,10 @@ class RobotLocalizer:
         # a turn about the camera's y (x) axis sweeps the image along u (v)
         self._smear = self.params.exposure * np.array([self.camera.K[0, 0] * rate[1], self.camera.K[1, 1] * rate[0]])
         try:
-            return self._measure(image, _check_transform(T_BC), prior)
+            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance))
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
-
-    def _set_pose_prior(self, covariance: Optional[np.ndarray]) -> None:
-        """The frame's prior pose covariance for a conditioned fix: None unless 3 x 3, finite, positive."""
-        self._pose_prior = None
-        if covariance is not None:
-            P = np.asarray(covariance, dtype=float)
-            if P.shape == (3, 3) and np.all(np.isfinite(P)) and np.all(np.linalg.eigvalsh(0.5 * (P + P.T)) > 0):
-                self._pose_prior = 0.5 * (P + P.T)
 
     def _frame_tilt_covariance(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
         """Prior covariance of (delta, epsilon) at the corrected T_BC: the torso's and the tilt estimate's."""
@@ -991,7 +981,8 @@ class RobotLocalizer:
         self._tilt_prior = tilt_information(self.params.pixel_sigma, self._tilt_covariance)
         return T_BC
 
-    def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose]) -> PoseFix:
+    def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose], prior_covariance: Optional[np.ndarray]
+                 ) -> PoseFix:
         T_BC = self._set_tilt_prior(T_BC, self._roll_sigma)
         model = PlanarModel(self.camera, T_BC)
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
@@ -1004,7 +995,7 @@ class RobotLocalizer:
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
         markers = _Points(markers.X, model.undistort(markers.u), markers.ids, markers.group)
-        return self._solve(model, markers, lambda: self.detector.color_blobs(image), prior_p)
+        return self._solve(model, markers, lambda: self.detector.color_blobs(image), prior_p, prior_covariance)
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
             groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None,
@@ -1015,7 +1006,6 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         self._smear = np.zeros(2)
-        self._set_pose_prior(prior_covariance)
         try:
             model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
@@ -1026,14 +1016,15 @@ class RobotLocalizer:
             finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(u), axis=1)
             points = _Points(X[finite], model.undistort(u[finite]), list(group[finite]), group[finite])
             prior_p = None if prior is None or not all(math.isfinite(v) for v in prior) else np.array([*prior, 0.0])
-            return self._solve(model, points, dict, prior_p)
+            return self._solve(model, points, dict, prior_p, _positive_covariance(prior_covariance))
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
 
     def _solve(self, model: PlanarModel, markers: _Points, colour_blobs: Callable[[], Dict[str, np.ndarray]],
-               prior_p: Optional[np.ndarray]) -> PoseFix:
-        """Markers fitted jointly, colour blobs added (or searched) when they are few (module docstring)."""
+               prior_p: Optional[np.ndarray], prior_covariance: Optional[np.ndarray] = None) -> PoseFix:
+        """Markers fitted jointly, colour blobs added (or searched) when they are few (module docstring);
+        ``prior_covariance`` (of ``prior_p``'s pose, checked) turns a fix too imprecise alone into a conditioned one."""
         self.landmarks_seen = len(np.unique(markers.group))
         reasons = []
         fit = None
@@ -1080,10 +1071,10 @@ class RobotLocalizer:
         limit = self.params.max_position_std if prior_p is None else self.params.max_position_std_with_prior
         conditioned = std > limit
         if conditioned:
-            if prior_p is None or self._pose_prior is None:
+            if prior_p is None or prior_covariance is None:
                 raise NoFix(f"fix too imprecise: position std {std * 100:.1f} cm above {limit * 100:.1f} cm "
                             f"({len(points.landmark_ids)} landmarks, far or bunched)")
-            p, rms, H = self._conditioned_fit(model, points, prior_p, self._pose_prior, G, tilt_covariance, std)
+            p, rms, H = self._conditioned_fit(model, points, prior_p, prior_covariance, G, tilt_covariance, std)
             G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
             covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
             information, evidence = np.zeros((2, 2)), np.zeros(2)  # the prior's information is not the data's
@@ -1531,22 +1522,21 @@ class RobotLocalizer:
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):
             pose, P = np.array(fix.pose), fix.covariance
             total, self._intrinsics_cross = fix.covariance + G @ Sigma @ G.T, G @ Sigma
-        elif fix.conditioned:  # the posterior already: the data's information I_d = R_post^-1 - P^-1, K = P_post I_d
-            prior_information = np.linalg.inv(self.covariance)
-            w, V = np.linalg.eigh(np.linalg.inv(fix.covariance) - prior_information)
-            data_information = (V * np.maximum(w, 0.0)) @ V.T
-            pose, P = np.array(fix.pose), np.linalg.inv(prior_information + data_information)
-            K = P @ data_information
-            A = np.eye(3) - K  # the fix's gain G is the posterior's, K G already
-            total = A @ self.total_covariance @ A.T + A @ C @ G.T + G @ C.T @ A.T + G @ Sigma @ G.T + K @ P.T
-            self._intrinsics_cross = A @ C + G @ Sigma
         else:
-            K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
-            pose = np.array(prior) + K @ _difference(fix.pose, prior)
-            P = (np.eye(3) - K) @ self.covariance
-            A, KG = np.eye(3) - K, K @ G
-            total = (A @ self.total_covariance @ A.T + A @ C @ KG.T + KG @ C.T @ A.T + KG @ Sigma @ KG.T
-                     + K @ fix.covariance @ K.T)
+            if fix.conditioned:  # the posterior already: the data's information I_d = R_post^-1 - P^-1, K = P_post I_d
+                prior_information = np.linalg.inv(self.covariance)
+                w, V = np.linalg.eigh(np.linalg.inv(fix.covariance) - prior_information)
+                data_information = (V * np.maximum(w, 0.0)) @ V.T
+                pose, P = np.array(fix.pose), np.linalg.inv(prior_information + data_information)
+                K = P @ data_information
+                KG, measured = G, K @ P.T  # the fix's gain is the posterior's, K G already; K R K^T = P I_d P
+            else:
+                K = self.covariance @ np.linalg.inv(self.covariance + fix.covariance)
+                pose = np.array(prior) + K @ _difference(fix.pose, prior)
+                P = (np.eye(3) - K) @ self.covariance
+                KG, measured = K @ G, K @ fix.covariance @ K.T
+            A = np.eye(3) - K
+            total = A @ self.total_covariance @ A.T + A @ C @ KG.T + KG @ C.T @ A.T + KG @ Sigma @ KG.T + measured
             self._intrinsics_cross = A @ C + KG @ Sigma
         self.covariance = 0.5 * (P + P.T)
         self.total_covariance = 0.5 * (total + total.T)
@@ -1574,6 +1564,17 @@ def _tilt_evidence(data: np.ndarray, prior: np.ndarray, p: np.ndarray, variance:
         return np.zeros((2, 2)), np.zeros(2)
     marginal = 0.5 * (marginal + marginal.T)
     return marginal / variance, (marginal + prior[3:, 3:]) @ p[3:5] / variance
+
+
+def _positive_covariance(covariance: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """A pose prior's covariance, symmetrized, or None unless 3 x 3, finite and positive definite."""
+    if covariance is None:
+        return None
+    P = np.asarray(covariance, dtype=float)
+    if P.shape != (3, 3) or not np.all(np.isfinite(P)):
+        return None
+    P = 0.5 * (P + P.T)
+    return P if np.all(np.linalg.eigvalsh(P) > 0) else None
 
 
 def _distinct(poses: np.ndarray, scores: np.ndarray, distance: float, limit: int = 8) -> List[np.ndarray]:

@@ -973,7 +973,7 @@ def test_the_total_covariance_holds_the_intrinsics_error_every_fix_shares(params
 def _two_far_balls_fused(params, robot, prior_covariance, rng, truth_offset=None):
     """A walking robot whose pose prior N(truth, ``prior_covariance``) meets a frame of two balls 2.6-2.9 m
     away (four equations for the pose and the tilt: alone, a fix 15-25 cm imprecise), the torso's sway
-    drawn from the walking prior it assumes, its camera tilt learnt: (localizer, truth, the frame's fix)."""
+    drawn from the walking prior it assumes (``params``'): (localizer, truth, the frame's fix)."""
     camera = CameraModel.from_fov(640, 480, math.radians(57.0))
     T_BC = robot.camera_in_robot(0.0, 0.1)
     X = np.array([[2.6, 0.55, 0.3], [2.9, -0.6, 0.6]])
