@@ -217,6 +217,18 @@ reported): sharp frames of a turning camera then lose their one-marker fixes too
 without a shutter: one-marker fixes 17 → 3 of 1015 frames, all fixes 1015 → 968), and the lookout
 stands when fixes stop (station/pilot.py).
 
+Stamp error, not considered. A frame's stamp may be off the instant its image shows (docs/frames.md),
+so while the camera turns at omega its T_BC is off by a turn omega dt, which the fix's heading
+absorbs: the robot's heading is off by it, the camera's, which the image gives, is not. The object's
+bearing in the same frame shares that T_BC, so the camera's heading (the fused pose times T_BC) is
+what it needs. Considering the stamp's error in the fix (C_fix += G g g^T G^T, g = H^-1 J^T (d u /
+d e) omega sigma_s, d X_C = X_C x e) made the fixes consistent as robot poses (the ring's views, the
+head turning at 0.2 rad/s, T_BC of an instant N(0, 20 ms) off: NEES mean 24 → 1.2), but the fused
+pose then kept its heading while T_BC turned, and the pilot's object estimate followed the late
+kinematics: in tests/test_pilot.py's sweep with frames 70 ms late, it moved 23 mm instead of 5
+(told nothing) and 5.1 mm instead of 1.2 (told 0.1 s). The object filter weighs the stamp's error in
+its bearings instead, on every frame (station/pilot.py).
+
 Predicted precision (for the pilot and ``station check-layout``): from a pose and T_BC, the
 landmark points that would be detected (in the image with a margin, in front, facing the camera,
 at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the fix covariance
