@@ -504,9 +504,7 @@ class PlanarModel:
             r = (uv - target).ravel()
             Jr = J.reshape(-1, 5)
             H = Jr.T @ Jr + prior
-            offset = p - mean
-            offset[2] = wrap_angle(offset[2])
-            g = Jr.T @ r + prior @ offset
+            g = Jr.T @ r + prior @ _from_mean(p, mean)
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
                 raise NoFix("non-finite residuals in the planar fit")
             if np.linalg.cond(H) > 1e12:
@@ -1109,8 +1107,7 @@ class RobotLocalizer:
                              + tilt_information(self.params.pixel_sigma, tilt_covariance))
         mean = np.array([*prior_p[:3], 0.0, 0.0])
         p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean)
-        offset = p - mean
-        offset[2] = wrap_angle(offset[2])
+        offset = _from_mean(p, mean)
         nis = float(np.sum(err**2) + offset @ prior_information @ offset) / self.params.pixel_sigma**2
         if not (nis <= chdtri(2 * len(points), 1.0 - self.params.conditioned_confidence) and rms <= self.params.max_reprojection_px
                 and np.all(_group_max(err, points.group) <= self.params.ransac_reprojection_px)):
@@ -1576,6 +1573,13 @@ def _tilt_evidence(data: np.ndarray, prior: np.ndarray, p: np.ndarray, variance:
         return np.zeros((2, 2)), np.zeros(2)
     marginal = 0.5 * (marginal + marginal.T)
     return marginal / variance, (marginal + prior[3:, 3:]) @ p[3:5] / variance
+
+
+def _from_mean(p: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """p - mean for p = (x, y, theta, delta, epsilon), the heading's difference wrapped."""
+    offset = p - mean
+    offset[2] = wrap_angle(offset[2])
+    return offset
 
 
 def _positive_covariance(covariance: Optional[np.ndarray]) -> Optional[np.ndarray]:

@@ -15,7 +15,7 @@ tilt learnt*: the same, the tilt learnt (its std at ``camera_tilt_floor``: the r
 standing frames); *still, cold, camera tilted*: the same views in a world whose camera sits MOUNT_DEG
 degrees (roll, pitch down) off on its mount, tilt not learnt (agent/localization.py, Pivot); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking), the fix alone; *prior with covariance*: the same prior
-with its covariance (std PRIOR_STD), as ``on_frame`` gives it: a frame too imprecise alone gives a fix
+with its covariance (std 3 cm in x and y, 0.02 rad in heading), as ``on_frame`` gives it: a frame too imprecise alone gives a fix
 conditioned on the prior (agent/localization.py, Conditioned fixes), whose error is then the
 posterior's (what the fusion would hold); two baselines, cold: *pitch held* to T_BC's
 (``pitch_sigma`` and ``camera_tilt_sigma`` 1e-5 rad, the model before the pitch was fitted) and *cornerSubPix corners*
@@ -53,7 +53,7 @@ TILT = math.radians(0.3)  # rad, the roll and the pitch T_BC misses
 HELD = 1e-5  # rad, the baseline's pitch prior: held
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
-PRIOR_STD = (0.03, 0.03, 0.02)  # m, m, rad: the covariance the prior says it has
+PRIOR_COVARIANCE = np.diag([0.03, 0.03, 0.02]) ** 2  # m^2, m^2, rad^2: the covariance the prior says it has
 MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degrees (the matrix draws within these)
 
 
@@ -82,12 +82,14 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
     learnt = RobotLocalizer(dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2), world.landmarks,
                             camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
-    # (mode, localizer, with the prior, standing: the frame's own T_BC and the standing roll prior, the tilted camera's frame)
-    solvers = (("cold", localizer, False, False, False), ("still, cold", localizer, False, True, False),
-               ("still, cold, tilt learnt", learnt, False, True, False), ("still, cold, camera tilted", localizer, False, True, True),
-               ("prior", localizer, True, False, False), ("prior with covariance", localizer, True, False, False),
-               ("cold, pitch held", held, False, False, False),
-               ("cold, cornerSubPix corners", subpix, False, False, False))
+    # (mode, localizer, with the prior, the prior's covariance given, standing: the frame's own T_BC and the
+    # standing roll prior, the tilted camera's frame)
+    solvers = (("cold", localizer, False, False, False, False), ("still, cold", localizer, False, False, True, False),
+               ("still, cold, tilt learnt", learnt, False, False, True, False),
+               ("still, cold, camera tilted", localizer, False, False, True, True),
+               ("prior", localizer, True, False, False, False), ("prior with covariance", localizer, True, True, False, False),
+               ("cold, pitch held", held, False, False, False, False),
+               ("cold, cornerSubPix corners", subpix, False, False, False, False))
     rng = np.random.default_rng(1)
     ox, oy = world.scenario.position
     rows = {mode: {"errors": [], "nees": [], "times": [], "shown": 0, "posed": 0, "posed_fixed": 0} for mode, *_ in solvers}
@@ -104,7 +106,7 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
         roll, pitch = rng.choice([-1.0, 1.0], 2) * TILT
         T_BC = rot_x(roll) @ rot_y(pitch) @ frame.T_BC
         prior = tuple(t + o for t, o in zip(truth, PRIOR_OFFSET))
-        for mode, solver, with_prior, standing, on_tilted in solvers:
+        for mode, solver, with_prior, with_covariance, standing, on_tilted in solvers:
             row = rows[mode]
             solver.reset()
             begin = time.perf_counter()
@@ -112,8 +114,8 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
                 view = tilted_frame if on_tilted else frame
                 fix = solver.measure(view.image, view.T_BC, None, params.roll_sigma_still)
             else:
-                covariance = np.diag(PRIOR_STD) ** 2 if mode == "prior with covariance" else None
-                fix = solver.measure(frame.image, T_BC, prior if with_prior else None, prior_covariance=covariance)
+                fix = solver.measure(frame.image, T_BC, prior if with_prior else None,
+                                     prior_covariance=PRIOR_COVARIANCE if with_covariance else None)
             row["times"].append((time.perf_counter() - begin) * 1e3)
             row["shown"] += 1
             row["posed"] += posed
