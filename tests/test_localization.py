@@ -970,13 +970,16 @@ def test_the_total_covariance_holds_the_intrinsics_error_every_fix_shares(params
     assert 2.4 < np.mean(nees_total) < 3.6
 
 
+FAR_BALLS = np.array([[2.6, 0.55, 0.3], [2.9, -0.6, 0.6]])  # two balls 2.6-2.9 m ahead: a frame too imprecise alone
+WIDE_VGA = CameraModel.from_fov(640, 480, math.radians(57.0))
+
+
 def _two_far_balls_fused(params, robot, prior_covariance, rng, truth_offset=None):
     """A walking robot whose pose prior N(truth, ``prior_covariance``) meets a frame of two balls 2.6-2.9 m
     away (four equations for the pose and the tilt: alone, a fix 15-25 cm imprecise), the torso's sway
     drawn from the walking prior it assumes (``params``'): (localizer, truth, the frame's fix)."""
-    camera = CameraModel.from_fov(640, 480, math.radians(57.0))
+    camera, X = WIDE_VGA, FAR_BALLS
     T_BC = robot.camera_in_robot(0.0, 0.1)
-    X = np.array([[2.6, 0.55, 0.3], [2.9, -0.6, 0.6]])
     localizer = RobotLocalizer(params, LandmarkMap(()), camera)
     truth = rng.normal(0.0, 0.05, 3)
     prior = truth + (rng.multivariate_normal(np.zeros(3), prior_covariance) if truth_offset is None else truth_offset)
@@ -1042,9 +1045,8 @@ def test_conditioned_fits_of_hostile_priors_never_raise(params, robot, offset, s
     """Two far balls (the frame a conditioned fix comes from) under any prior, however far off, and any
     prior covariance (tiny, huge, zero, NaN, negative), with pixel noise up to 20 px: a fix or None with
     a reason, never an exception; a conditioned fix is finite and its covariance positive."""
-    camera = CameraModel.from_fov(640, 480, math.radians(57.0))
+    camera, X = WIDE_VGA, FAR_BALLS
     T_BC = robot.camera_in_robot(0.0, 0.1)
-    X = np.array([[2.6, 0.55, 0.3], [2.9, -0.6, 0.6]])
     rng = np.random.default_rng(0)
     pixels = PlanarModel(camera, T_BC).project(np.zeros(3), X)[0] + rng.normal(0.0, noise, (2, 2))
     localizer = RobotLocalizer(params, LandmarkMap(()), camera)
