@@ -99,7 +99,17 @@ nearer. A
 silhouette cut by the bottom border hides the base the floor distance needs (it is then only an
 upper bound): the next head target in ACTIVE pitches down at least to the capture pitch plus the
 bottom row's angle below the optical axis, pitch >= pitch_c + atan2(r_y, r_z) with r the ray of
-(c_x, H - 1), which puts the old bottom row at the centre and the base back in view.
+(c_x, H - 1), which puts the old bottom row at the centre and the base back in view. The head's
+pitch limit shrinks with its yaw (the anti-collision table: 0.20 rad at a yaw of 1.53 against 0.515
+straight ahead), so a base cut while the head is at that limit (within ``FACING_TOLERANCE``), at a
+yaw whose limit is lower than straight ahead's, is out of the head's reach: the ACTIVE walk is then
+a turn in place towards the object, omega = sign(yaw_c) omega_max, until a frame shows the base or
+the head off its limit, and no self-calibration standstill starts meanwhile; only until the filter
+has measured widths (its radius std below ``MEASURED_RADIUS`` of the prior's: later, an orbit's views
+with the base cut still give bearings and carve, and a turn the plan did not foresee would point its
+next forward step at the object). Stress world 314 (docs/benchmarks.md, "Stress worlds"): a 26 cm
+bucket 0.84 m away at 87 deg, its base never in view, so no width and no range; the estimate was
+1.7 m off in range, the clearance margin of an unknown radius turned the robot away, the object lost.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
 ``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
 (once anchored, of the bins the map's walls leave reachable, ``Planner.reachable_bins``; with
@@ -153,6 +163,8 @@ from station.outputs import (
 
 Cam = Tuple[float, float, float]
 VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
+FACING_TOLERANCE = 0.05  # rad: a head pitch this near its limit at the head's yaw is at the limit (joint tracking, sensor lag)
+MEASURED_RADIUS = 0.5  # the radius std below this share of its prior: widths were measured, no facing turn
 FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
 
 
@@ -252,6 +264,7 @@ class Pilot:
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
         self._near: Optional[Tuple[float, float]] = None  # the surface point q_O the last measured image gave (odometry frame)
         self._base_pitch: Optional[float] = None  # least head pitch that brings a bottom-cut base back in view
+        self._facing_turn = 0.0  # rad/s: the turn in place that brings a base out of the head's reach back into it (0: none)
         ray = self.camera.pixels_to_rays(np.array([[self.camera.width / 2.0, self.camera.height - 1.0]]))[0]
         self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
@@ -301,7 +314,7 @@ class Pilot:
         """The mission's decision for now, with the pilot's walk and head where the mission leaves them."""
         t = event.t
         decision = self.mission.tick(t)
-        if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=True):
+        if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=not self._facing_turn):
             p = self.config.self_calibration
             decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self.standstill.head(t, self._object_head()), reason=(
                 f"self-calibration: standing for landmark views ({len(self.calibration.fixes)} of {p.min_frames} fixes, "
@@ -315,7 +328,11 @@ class Pilot:
                 if self._base_pitch is not None and head[1] < self._base_pitch:  # the base was cut: look down at it
                     head = self.robot.head.clamp(head[0], self._base_pitch)
                 self._object_gaze = head
-                decision = Decision(decision.phase, walk=self.command, head=head)
+                if self._facing_turn:
+                    decision = Decision(decision.phase, walk=(0.0, 0.0, self._facing_turn), head=head, reason=(
+                        "facing the object: its base is below the head's reach at this yaw"))
+                else:
+                    decision = Decision(decision.phase, walk=self.command, head=head)
             else:
                 p = self.config.mission
                 standing = self._drought(t) > 0.0  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
@@ -383,10 +400,12 @@ class Pilot:
             measurement = None if silhouette is None or flooded else measure_object(silhouette, self.camera, T_WC,
                                                                                    self.config.perception)
             self._sighting = self._base_pitch = floor = None
+            self._facing_turn = 0.0
             if measurement is not None:
                 self._sighting = self._last_sighting = (silhouette.centroid, (meta.head_yaw, meta.head_pitch))
                 if silhouette.touches_bottom:
                     self._base_pitch = meta.head_pitch + self._bottom_row_angle
+                    self._facing_turn = self._turn_to_reach_base(meta.head_yaw, meta.head_pitch)
                 base_distance = floor_distance(silhouette, self.camera, T_WC)
                 floor = floor_contact(silhouette, base_distance, float(T_WC[2, 3]))
                 self.height.update(silhouette.bbox[1], silhouette.centroid[0], silhouette.touches_top, self.camera, T_WC,
@@ -525,6 +544,17 @@ class Pilot:
         an estimate the robot stands, so its head angles still hold), or (None, None)."""
         sighting = self._sighting or (None if self.ekf.initialized else self._last_sighting)
         return sighting if sighting else (None, None)
+
+    def _turn_to_reach_base(self, yaw: float, pitch: float) -> float:
+        """rad/s: the turn in place towards a bottom-cut object seen with the head at (``yaw``, ``pitch``),
+        when the head is at its pitch limit there and a smaller yaw would raise it; else 0 (module docstring)."""
+        if self.ekf.initialized and math.sqrt(self.ekf.P[2, 2]) < MEASURED_RADIUS * self.config.ekf.radius_prior_std:
+            return 0.0
+        head = self.robot.head
+        limit = head.pitch_range(yaw)[1]
+        if pitch < limit - FACING_TOLERANCE or limit >= head.pitch_range(0.0)[1] - FACING_TOLERANCE:
+            return 0.0
+        return math.copysign(self.robot.walk.omega_max, yaw)
 
     def _object_head(self) -> Tuple[float, float]:
         """The head servo's target on the object estimate (and its sighting, :meth:`_servo_sighting`)."""

@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from agent.ekf import ObjectEKF
 from agent.mission import Outcome, Phase
 from nao_core.geometry import compose, relative, wrap_angle
 from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, encode
@@ -357,6 +358,50 @@ def test_a_base_cut_by_the_bottom_border_pitches_the_head_down_to_it():
     vfov_half = math.atan2(INFO.intrinsics.height / 2.0, INFO.intrinsics.fy)
     assert free[1] < 0.5 * vfov_half < low[1]
     assert low == MODEL.head.clamp(free[0], pilot._bottom_row_angle)  # noqa: SLF001
+
+
+@pytest.mark.parametrize("bearing, distance, head_yaw, measured, turns", [
+    (1.5, 0.84, 1.5, False, True),  # the head at 1.5 rad can pitch 0.2 rad down: the near bucket's base stays below the image
+    (-1.5, 0.84, -1.5, False, True),  # the same on the right
+    (1.5, 0.84, 1.5, True, False),  # the same, its widths already measured (an orbit): the plan goes on
+    (0.0, 0.84, 0.0, False, False),  # straight ahead the head can pitch lower: it does (the base pitch), no turn
+    (1.5, 1.6, 1.5, False, False),  # far enough that the base is in view at the turned head's limit
+])
+def test_a_base_out_of_the_turned_heads_reach_turns_the_robot_to_the_object(bearing, distance, head_yaw, measured, turns):
+    """A 26 cm bucket beside the robot (stress world 314): its base cut by the bottom border with the head
+    at its pitch limit for its yaw, which a smaller yaw raises, and no width measured yet, so ACTIVE turns
+    the robot in place towards it (omega_max, the object's side) instead of walking the plan; otherwise
+    the plan's walk."""
+    now = [5.0]
+    world = SimWorld("bucket", MODEL, "qvga", seed=3, clock=lambda: now[0])
+    centre = np.asarray(world.scenario.position)
+    heading = 0.3
+    robot = (*(centre - distance * np.array([math.cos(heading + bearing), math.sin(heading + bearing)])), heading)
+    pitch = MODEL.head.pitch_range(head_yaw)[1]  # the head at its limit, as the servo leaves it
+    world.teleport(robot, head=(head_yaw, 0.2 if head_yaw == 0.0 else pitch))
+    pilot = Pilot(NO_STANDSTILL, INFO)
+    pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=CONFIG.mission.init_pitch)
+    pilot.mission.tick(0.0)
+    pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=True, localized=True)
+    pilot.command = (0.08, 0.0, -0.3)  # a plan walking on, turning away
+    for seq in (1, 2):  # the first frame's landmark fix anchors the pose in the world
+        if measured and seq == 2:
+            truth = (*world.scenario.position, 0.13)
+            pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, np.array(truth), np.diag([1e-4, 1e-4, 1e-6]))
+        now[0] += 0.1
+        shot = world.render()
+        meta = FrameMeta(seq=seq, stamp=shot.stamp, width=W, height=H, encoding="jpeg", head_yaw=shot.head_yaw,
+                         head_pitch=shot.head_pitch, T_BC=tuple(shot.T_BC.ravel()), odom=tuple(shot.odom), resolution="qvga")
+        pilot.handle(FrameReceived(now[0], Frame(meta, b"", jpeg(shot.image))))
+    assert pilot.anchored or not measured  # the injected estimate is in the world frame
+    assert pilot._sighting is not None  # noqa: SLF001 - the bucket measured
+    assert pilot._base_pitch is not None or distance > 1.0  # noqa: SLF001 - near, its base is cut
+    decision = pilot.handle(Tick(now[0] + 0.05)).decision
+    if turns:
+        assert decision.walk == (0.0, 0.0, math.copysign(MODEL.walk.omega_max, head_yaw))
+        assert decision.reason.startswith("facing the object")
+    else:
+        assert decision.walk == (0.08, 0.0, -0.3)
 
 
 @pytest.mark.parametrize("localized", [False, True])
