@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: venv test test-slow demo demo-estimation bench matrix fuzz clean
+.PHONY: venv test test-slow demo demo-estimation bench matrix stress fuzz clean
 
 venv: $(STAMP)
 
@@ -45,6 +45,12 @@ bench: $(STAMP)
 COUNT ?= 40
 matrix: $(STAMP)
 	$(PY) -m tools.matrix --count $(COUNT) --out runs/matrix --doc docs/benchmarks.md
+
+# The same missions in harsher worlds (config/stress.yaml: every range widened), seeds 300 on; to the
+# stress section of docs/benchmarks.md. What breaks first, not a promise.
+STRESS_COUNT ?= 16
+stress: $(STAMP)
+	$(PY) -m tools.matrix --ranges config/stress.yaml --count $(STRESS_COUNT) --first-seed 300 --out runs/stress --doc docs/benchmarks.md
 
 # Long fuzzing budget (the default suite runs a bounded one).
 fuzz: $(STAMP)

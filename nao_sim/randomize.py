@@ -38,7 +38,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Tuple
+from pathlib import Path
+from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -90,8 +91,9 @@ class Randomizer:
             raise ValueError("randomizer: 'floor_colors' and 'wall_colors' must not be empty")
 
 
-def load_randomizer() -> Randomizer:
-    return load(Randomizer, [CONFIG_DIR / "sim.yaml"], section="randomizer")
+def load_randomizer(overrides: Sequence[Union[str, Path]] = ()) -> Randomizer:
+    """The ``randomizer`` section of config/sim.yaml, merged with ``overrides`` (e.g. config/stress.yaml)."""
+    return load(Randomizer, [CONFIG_DIR / "sim.yaml", *overrides], section="randomizer")
 
 
 @dataclass(frozen=True)

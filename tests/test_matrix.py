@@ -148,10 +148,13 @@ def test_mean_half_breadth_is_the_radius_of_a_cylinder_and_cauchys_for_a_box():
         assert CONFIG.scenario(name).mean_half_breadth <= CONFIG.scenario(name).radius + 1e-9, name
 
 
-def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
-    r = load_randomizer()
+@pytest.mark.parametrize("ranges", [(), (CONFIG_DIR / "stress.yaml",)], ids=["matrix", "stress"])
+def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
+    r = load_randomizer(ranges)
     specs = [random_world(seed, r, CONFIG, ROBOT) for seed in range(40)]  # the configuration read once
-    assert random_world(7) == specs[7]  # and read by random_world itself: the same world
+    assert random_world(7, load_randomizer(ranges)) == specs[7]  # and read again: the same world
+    if not ranges:
+        assert random_world(7) == specs[7]  # read by random_world itself
     drawn = {s.layout for s in specs if s.layout.startswith("drawn")}  # users' layouts (tests/test_layouts.py)
     assert {s.layout for s in specs} - drawn == set(r.layouts) and drawn and {s.object_name for s in specs} == set(r.objects)
     assert 0 < sum(s.bare_naoqi for s in specs) < len(specs)  # some worlds are served by a bare NAOqi, not all
@@ -177,6 +180,22 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed():
     assert {s.config.room.floor_color for s in specs} == set(r.floor_colors)
     world = RandomWorld(specs[0])
     assert world.true_pose() == pytest.approx(specs[0].start) and world.truth()["odom_origin"] == pytest.approx(list(specs[0].start))
+
+
+def test_the_stress_ranges_reach_beyond_the_matrix_ranges():
+    """config/stress.yaml is harsher: each range it sets reaches at least the matrix's worst end (the top;
+    for the start distance, the bottom too: nearer), and a scalar is larger."""
+    matrix, stress = load_randomizer(), load_randomizer([CONFIG_DIR / "stress.yaml"])
+    widened = [f.name for f in dataclasses.fields(matrix) if getattr(matrix, f.name) != getattr(stress, f.name)]
+    assert len(widened) >= 10
+    for name in widened:
+        low, high = getattr(matrix, name), getattr(stress, name)
+        if name == "drawn_layout":
+            assert high.share > low.share and dataclasses.replace(high, share=low.share) == low
+        elif isinstance(low, tuple):
+            assert low[1] <= high[1] and high != low and (name != "start_distance" or high[0] < low[0]), name
+        else:
+            assert high > low, name
 
 
 @pytest.mark.parametrize("paint", ["floor_colors", "wall_colors"])

@@ -39,10 +39,13 @@ Measured against the simulator's truth:
   self-calibration's d_v.
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
-                           [--doc docs/benchmarks.md] [--rebuild]
+                           [--doc docs/benchmarks.md] [--rebuild] [--ranges config/stress.yaml]
 
 ``--rebuild`` runs no mission: it rewrites the table from the runs already in ``--out`` (each
 seed's matrix.json, the radius error recomputed from its result.json), e.g. after an interrupted run.
+``--ranges FILE`` merges FILE's ``randomizer`` section over config/sim.yaml's and writes the table to
+the document's ``stress`` section instead: config/stress.yaml widens every range beyond what the
+matrix promises (docs/benchmarks.md, "Stress worlds"), to find what breaks first.
 
 A benchmark, not a test: a few fixed seeds run in the default suite (tests/test_matrix.py).
 """
@@ -70,7 +73,7 @@ import yaml
 
 from agent.camera import CameraModel
 from nao_core.robot_model import load_robot_model
-from nao_sim.randomize import RandomWorld, WorldSpec, load_randomizer, random_world
+from nao_sim.randomize import Randomizer, RandomWorld, WorldSpec, load_randomizer, random_world
 from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
 from station.config import load_station_config
@@ -350,8 +353,9 @@ def _pair(values: Optional[Tuple[float, float]], scale: float, digits: int = 1) 
     return "-" if values is None else f"{_fmt(values[0], scale, digits)} / {_fmt(values[1], scale, digits)}"
 
 
-def table(results: List[MissionResult], resolution: str, machine: str = "") -> str:
-    """Markdown: a summary per object kind and overall, then one row per mission; ``machine`` says where and when."""
+def table(results: List[MissionResult], resolution: str, machine: str = "", ranges: Optional[Randomizer] = None) -> str:
+    """Markdown: a summary per object kind and overall, then one row per mission; ``machine`` says where and
+    when, ``ranges`` the randomizer the worlds were drawn with (default config/sim.yaml's)."""
     done = [r for r in results if r.outcome == "completed"]
 
     def stats(rows: List[MissionResult], label: str) -> str:
@@ -375,7 +379,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     objects = sorted({r.world["object"] for r in results})
     bare = [r for r in results if r.world.get("bare_naoqi")]
     blurred = [r for r in results if r.world.get("blur_sigma", 0.0) >= BLURRED]
-    ranges = load_randomizer()
+    ranges = ranges or load_randomizer()
     users = [r for r in results if r.world["layout"].startswith("drawn")]
     lines = [
         f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
@@ -422,11 +426,15 @@ def table(results: List[MissionResult], resolution: str, machine: str = "") -> s
     return "\n".join(lines)
 
 
-def write_section(doc: Path, body: str) -> None:
-    """Replace (or append) the ``matrix`` section of the benchmarks document, as tools/bench.py does."""
+SECTIONS = {"matrix": "Mission matrix: randomized worlds through the NAOqi stand-in",
+            "stress": "Stress worlds: the matrix with every range widened (config/stress.yaml)"}
+
+
+def write_section(doc: Path, body: str, name: str = "matrix") -> None:
+    """Replace (or append) the ``name`` section (of ``SECTIONS``) of the benchmarks document, as tools/bench.py does."""
     text = doc.read_text() if doc.exists() else "# Benchmarks\n"
-    new = section("matrix", "## Mission matrix: randomized worlds through the NAOqi stand-in\n\n" + body)
-    pattern = re.compile(re.escape(BEGIN.format(name="matrix")) + r".*?" + re.escape(END.format(name="matrix")) + r"\n", re.S)
+    new = section(name, f"## {SECTIONS[name]}\n\n" + body)
+    pattern = re.compile(re.escape(BEGIN.format(name=name)) + r".*?" + re.escape(END.format(name=name)) + r"\n", re.S)
     doc.write_text(pattern.sub(lambda _: new, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + new)
 
 
@@ -438,19 +446,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/matrix"))
     parser.add_argument("--doc", type=Path, default=Path("docs/benchmarks.md"), help="document whose matrix section is rewritten")
     parser.add_argument("--rebuild", action="store_true", help="no missions: the table from the runs already in --out")
+    parser.add_argument("--ranges", type=Path, help="randomizer overrides (e.g. config/stress.yaml): the stress section")
     args = parser.parse_args(argv)
     if args.count < 1:
         parser.error("--count must be at least 1")
     resolution = args.resolution or load_station_config().station.resolution
+    ranges = load_randomizer([args.ranges] if args.ranges else [])
     results = []
     for seed in range(args.first_seed, args.first_seed + args.count):
         if args.rebuild:
             stored = args.out / f"seed{seed:03d}" / "matrix.json"
             if stored.exists():
-                results.append(_stored_result(stored, random_world(seed), resolution))
+                results.append(_stored_result(stored, random_world(seed, ranges), resolution))
             continue
         start = time.monotonic()
-        result = run_mission(seed, args.out / f"seed{seed:03d}", resolution)
+        result = run_mission(seed, args.out / f"seed{seed:03d}", resolution, spec=random_world(seed, ranges))
         results.append(result)
         (args.out / f"seed{seed:03d}" / "matrix.json").write_text(json.dumps(dataclasses.asdict(result), indent=2) + "\n")
         print(f"matrix: seed {seed} {result.world['layout']}/{result.world['object']}: {result.outcome}, centre "
@@ -458,8 +468,9 @@ def main(argv: Optional[List[str]] = None) -> int:
               f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
-    write_section(args.doc, table(results, resolution, machine))
-    print(f"matrix: wrote the matrix section of {args.doc}", file=sys.stderr)
+    name = "stress" if args.ranges else "matrix"
+    write_section(args.doc, table(results, resolution, machine, ranges), name)
+    print(f"matrix: wrote the {name} section of {args.doc}", file=sys.stderr)
     return 0
 
 
