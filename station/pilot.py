@@ -108,8 +108,8 @@ the head off its limit, and no self-calibration standstill starts meanwhile; onl
 has measured widths (its radius std below ``MEASURED_RADIUS`` of the prior's: later, an orbit's views
 with the base cut still give bearings and carve, and a turn the plan did not foresee would point its
 next forward step at the object). Stress world 314 (docs/benchmarks.md, "Stress worlds"): a 26 cm
-bucket 0.84 m away at 87 deg, its base never in view, so no width and no range; the estimate was
-1.7 m off in range, the clearance margin of an unknown radius turned the robot away, the object lost.
+bucket 0.77 m away at 87 deg, its base never in view, so no width and no range; the estimate was
+1.24 m off, the clearance margin of an unknown radius turned the robot away, the object lost.
 Per ``Replan`` (after the tick's commands are out: planning never delays them), every
 ``planner.period`` in ACTIVE: the termination test on the coverage within ``facing_margin``
 (once anchored, of the bins the map's walls leave reachable, ``Planner.reachable_bins``; with

@@ -353,9 +353,10 @@ def _pair(values: Optional[Tuple[float, float]], scale: float, digits: int = 1) 
     return "-" if values is None else f"{_fmt(values[0], scale, digits)} / {_fmt(values[1], scale, digits)}"
 
 
-def table(results: List[MissionResult], resolution: str, machine: str = "", ranges: Optional[Randomizer] = None) -> str:
+def table(results: List[MissionResult], resolution: str, machine: str = "", ranges: Optional[Randomizer] = None,
+          command: str = "`make matrix`, `python -m tools.matrix`") -> str:
     """Markdown: a summary per object kind and overall, then one row per mission; ``machine`` says where and
-    when, ``ranges`` the randomizer the worlds were drawn with (default config/sim.yaml's)."""
+    when, ``ranges`` the randomizer the worlds were drawn with (default config/sim.yaml's), ``command`` what ran them."""
     done = [r for r in results if r.outcome == "completed"]
 
     def stats(rows: List[MissionResult], label: str) -> str:
@@ -382,7 +383,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
     ranges = ranges or load_randomizer()
     users = [r for r in results if r.world["layout"].startswith("drawn")]
     lines = [
-        f"{len(results)} randomized missions (`make matrix`, `python -m tools.matrix`) at {resolution.upper()}, each through the NAOqi backend "
+        f"{len(results)} randomized missions ({command}) at {resolution.upper()}, each through the NAOqi backend "
         f"against the stand-in (YUV422, latency, drops, clock offset; {100 * ranges.bare_naoqi:g} % of them a bare NAOqi: "
         "docs/bridge.md), in a random landmark layout (one of config/landmarks, or for "
         f"{100 * ranges.drawn_layout.share:g} % of the worlds one drawn as users lay them out: a room of "
@@ -469,7 +470,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
     name = "stress" if args.ranges else "matrix"
-    write_section(args.doc, table(results, resolution, machine, ranges), name)
+    command = f"`python -m tools.matrix --ranges {args.ranges}`" if args.ranges else "`make matrix`, `python -m tools.matrix`"
+    write_section(args.doc, table(results, resolution, machine, ranges, command), name)
     print(f"matrix: wrote the {name} section of {args.doc}", file=sys.stderr)
     return 0
 
