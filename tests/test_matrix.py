@@ -198,6 +198,19 @@ def test_the_stress_ranges_reach_beyond_the_matrix_ranges():
             assert high > low, name
 
 
+def test_a_malformed_ranges_file_is_refused_by_name(tmp_path, capsys):
+    """``--ranges`` with a wrong range: exit 2 naming the file, the key and the rule, and no mission run."""
+    from tools.matrix import main
+
+    bad = tmp_path / "ranges.yaml"
+    bad.write_text("randomizer:\n  start_distance: [2.0, 1.0, 3.0]\n")
+    with pytest.raises(SystemExit) as stop:
+        main(["--ranges", str(bad), "--count", "1", "--out", str(tmp_path / "runs"), "--doc", str(tmp_path / "doc.md")])
+    assert stop.value.code == 2
+    assert f"{bad}: randomizer.start_distance: expected a list of 2 items" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "doc.md").exists()
+
+
 @pytest.mark.parametrize("paint", ["floor_colors", "wall_colors"])
 def test_the_randomized_rooms_are_painted_in_no_colour_the_perception_looks_for(paint):
     """A floor or wall in the object's colour, or a landmark's, is a room the colour segmentation

@@ -72,6 +72,7 @@ import numpy as np
 import yaml
 
 from agent.camera import CameraModel
+from nao_core.config import ConfigError
 from nao_core.robot_model import load_robot_model
 from nao_sim.randomize import Randomizer, RandomWorld, WorldSpec, load_randomizer, random_world
 from nao_sim.standin import StandIn
@@ -428,7 +429,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
 
 
 SECTIONS = {"matrix": "Mission matrix: randomized worlds through the NAOqi stand-in",
-            "stress": "Stress worlds: the matrix with every range widened (config/stress.yaml)"}
+            "stress": "Stress worlds: the matrix with its ranges widened (`--ranges`, config/stress.yaml)"}
 
 
 def write_section(doc: Path, body: str, name: str = "matrix") -> None:
@@ -452,7 +453,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.count < 1:
         parser.error("--count must be at least 1")
     resolution = args.resolution or load_station_config().station.resolution
-    ranges = load_randomizer([args.ranges] if args.ranges else [])
+    try:
+        ranges = load_randomizer([args.ranges] if args.ranges else [])
+    except ConfigError as exc:
+        parser.error(str(exc))  # exit 2 with the file, the key and the rule, no traceback
     results = []
     for seed in range(args.first_seed, args.first_seed + args.count):
         if args.rebuild:
