@@ -328,11 +328,9 @@ class Pilot:
                 if self._base_pitch is not None and head[1] < self._base_pitch:  # the base was cut: look down at it
                     head = self.robot.head.clamp(head[0], self._base_pitch)
                 self._object_gaze = head
-                if self._facing_turn:
-                    decision = Decision(decision.phase, walk=(0.0, 0.0, self._facing_turn), head=head, reason=(
-                        "facing the object: its base is below the head's reach at this yaw"))
-                else:
-                    decision = Decision(decision.phase, walk=self.command, head=head)
+                facing = "facing the object: its base is below the head's reach at this yaw" if self._facing_turn else ""
+                walk = (0.0, 0.0, self._facing_turn) if self._facing_turn else self.command
+                decision = Decision(decision.phase, walk=walk, head=head, reason=facing)
             else:
                 p = self.config.mission
                 standing = self._drought(t) > 0.0  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
@@ -548,12 +546,12 @@ class Pilot:
     def _turn_to_reach_base(self, yaw: float, pitch: float) -> float:
         """rad/s: the turn in place towards a bottom-cut object seen with the head at (``yaw``, ``pitch``),
         when the head is at its pitch limit there and a smaller yaw would raise it; else 0 (module docstring)."""
-        if self.ekf.initialized and math.sqrt(self.ekf.P[2, 2]) < MEASURED_RADIUS * self.config.ekf.radius_prior_std:
-            return 0.0
         head = self.robot.head
         limit = head.pitch_range(yaw)[1]
         if pitch < limit - FACING_TOLERANCE or limit >= head.pitch_range(0.0)[1] - FACING_TOLERANCE:
             return 0.0
+        if self.ekf.initialized and math.sqrt(self.ekf.P[2, 2]) < MEASURED_RADIUS * self.config.ekf.radius_prior_std:
+            return 0.0  # widths measured (the covariance is converted from the filter's state only here)
         return math.copysign(self.robot.walk.omega_max, yaw)
 
     def _object_head(self) -> Tuple[float, float]:
