@@ -91,11 +91,17 @@ class MissionParams:
     lookout_std: float = field(metadata=bounds(0.001, 10.0))
     lookout_stand: float = field(metadata=bounds(0.0, 600.0))
     lookout_stand_dwell: float = field(metadata=bounds(0.1, 60.0))
+    lookout_still: float = field(metadata=bounds(0.0, 60.0))
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this
     relocalize_shift: float = field(metadata=bounds(0.0, 100.0))  # m or rad: a fix moving the pose further rebuilds the object filter
     stop_timeout: float = field(metadata=bounds(0.0, 60.0))
+
+    def __post_init__(self) -> None:
+        if self.lookout_still >= self.lookout_stand_dwell:
+            raise ValueError(f"lookout_still ({self.lookout_still} s) must be shorter than lookout_stand_dwell "
+                             f"({self.lookout_stand_dwell} s): the head needs the rest of the dwell to get to the look")
 
     @property
     def search_turn_duration(self) -> float:

@@ -76,7 +76,11 @@ without a fix, whatever sigma_p (the mission ends after ``landmarks_lost_timeout
 the lookouts stand still (a zero walk), since a walking camera's smeared frames show
 no small marker (docs/frames.md "Exposure"), and alternate from then on with the object, the
 lookout first, ``lookout_stand_dwell`` s each, so that the head gets there and settles (and back:
-the mission ends when the object is unseen for ``object_lost_timeout``); a standing look that gave
+the mission ends when the object is unseen for ``object_lost_timeout``). A standing look searches
+only the directions the head reaches in time, ``(lookout_stand_dwell - lookout_still) x head speed``
+from where the head is (on both joints; the scan yaw, when none predicts a fix, is cut to it): with
+the object at the head's yaw limit, the best views lay 2.7 rad away and the head never got there
+(matrix seed 38, ``landmarks_lost``). A standing look that gave
 no fix rules out the directions within ``FRUITLESS_RADIUS`` of it until the next fix (the
 prediction was wrong there: the view of matrix world 0 chosen three times in a row gave none). No
 keyframe is taken while
@@ -268,6 +272,7 @@ class Pilot:
         ray = self.camera.pixels_to_rays(np.array([[self.camera.width / 2.0, self.camera.height - 1.0]]))[0]
         self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
+        self._head: Optional[Tuple[float, float]] = None  # latest head angles (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._lookout: Optional[Tuple[Tuple[bool, int], Tuple[float, float]]] = None  # ((standing, slot), head target) while looking away
         self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
@@ -288,6 +293,7 @@ class Pilot:
         state = event.state
         self.localizer.on_odometry(state.odom, state.stamp)
         self._odom = tuple(float(v) for v in state.odom)
+        self._head = (float(state.head_yaw), float(state.head_pitch))
         self.mission.on_state(event.t, state.fallen, state.walking, state.head_yaw, state.head_pitch)
         return Step()
 
@@ -625,12 +631,23 @@ class Pilot:
                 self._lookout, self._t_back = None, t
             return None
         if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
+            reach = self._look_reach() if slot[0] else None
             directions = [d for d in self._directions if all(max(abs(d[0] - f[0]), abs(d[1] - f[1])) > FRUITLESS_RADIUS
-                                                             for f in self._fruitless)]
+                                                             for f in self._fruitless)
+                          and (reach is None or max(abs(d[0] - self._head[0]), abs(d[1] - self._head[1])) <= reach)]
             view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
             scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
+            if reach is not None:
+                scan = min(max(scan, self._head[0] - reach), self._head[0] + reach)
             self._lookout = (slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
         return self._lookout[1]
+
+    def _look_reach(self) -> Optional[float]:
+        """rad a standing look may turn the head from where it is (module docstring), or None (head angles unknown)."""
+        if self._head is None or not all(map(math.isfinite, self._head)):
+            return None
+        p = self.config.mission
+        return (p.lookout_stand_dwell - p.lookout_still) * self.config.station.head_speed * self.robot.head.max_speed
 
     def _gaze_on_object(self, t: float, head: Tuple[float, float]) -> bool:
         """May a frame captured with this head be a keyframe: not looking away, and back on the object since."""

@@ -184,3 +184,22 @@ def test_a_standing_look_without_a_fix_is_not_repeated_until_a_fix(monkeypatch):
     pilot.handle(FrameReceived(t, frame(9, t, (0.0, 0.0, 0.0), head=second)))  # a fix: the drought ends
     pilot.handle(Tick(t + 0.1))
     assert pilot.mission.since_fix(t) == 0.0 and not pilot._fruitless
+
+
+def test_a_standing_look_goes_only_where_the_head_gets_in_time(monkeypatch):
+    """With the object at the head's yaw limit, a standing look searches the directions the head reaches
+    within lookout_stand_dwell - lookout_still at its speed (matrix seed 38: every look 2.7 rad away,
+    the head back on the object before it got there, no fix in 20 s); those directions still predict a fix."""
+    pilot, _ = active_pilot(monkeypatch)
+    p = CONFIG.mission
+    reach = (p.lookout_stand_dwell - p.lookout_still) * CONFIG.station.head_speed * MODEL.head.max_speed
+    t = 0.1 + p.lookout_stand + 0.5
+    pilot.mission.on_frame(t, True, False, True)  # the object seen, no fix: a standing look
+    best = pilot.localizer.best_landmark_view(pilot.localizer.pose, MODEL.camera_in_robot, head_directions(MODEL.head))
+    head = MODEL.head.clamp(MODEL.head.yaw[1] if best.yaw < 0.0 else MODEL.head.yaw[0], 0.3)  # the yaw limit away from it
+    assert max(abs(best.yaw - head[0]), abs(best.pitch - head[1])) > reach  # the best view over the whole range: out of reach
+    pilot.handle(StateReceived(t, SimpleNamespace(**{**vars(state(t, (0.0, 0.0, 0.0))), "head_yaw": head[0], "head_pitch": head[1]})))
+    look = pilot.handle(Tick(t)).decision
+    assert look.walk == (0.0, 0.0, 0.0) and "standing" in look.reason
+    assert max(abs(look.head[0] - head[0]), abs(look.head[1] - head[1])) <= reach + 1e-9, (head, look.head, reach)
+    assert pilot.localizer.predicted_fix(pilot.localizer.pose, MODEL.camera_in_robot(*look.head))[1] is not None

@@ -53,6 +53,13 @@ def test_bad_value_is_named(tmp_path):
         load(MissionParams, [CONFIG_DIR / "mission.yaml", bad], section="mission")
 
 
+def test_a_standing_look_still_longer_than_its_dwell_is_refused(tmp_path):
+    bad = tmp_path / "m.yaml"
+    bad.write_text("mission:\n  lookout_still: 3.0\n  lookout_stand_dwell: 2.5\n")
+    with pytest.raises(ConfigError, match="lookout_still .* must be shorter than lookout_stand_dwell"):
+        load(MissionParams, [CONFIG_DIR / "mission.yaml", bad], section="mission")
+
+
 def test_init_centres_head_then_times_out_into_search():
     mission = Mission(P)
     d = mission.tick(0.0)
