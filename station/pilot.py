@@ -635,9 +635,8 @@ class Pilot:
             return None
         if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
             reach = self._look_reach() if slot[0] else None
-            directions = [d for d in self._directions if all(max(abs(d[0] - f[0]), abs(d[1] - f[1])) > FRUITLESS_RADIUS
-                                                             for f in self._fruitless)
-                          and (reach is None or max(abs(d[0] - self._head[0]), abs(d[1] - self._head[1])) <= reach)]
+            directions = [d for d in self._directions if not any(head_at(d, f, FRUITLESS_RADIUS) for f in self._fruitless)
+                          and (reach is None or head_at(d, self._head, reach))]
             view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
             scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
             if reach is not None:
