@@ -13,17 +13,13 @@ orbit that turns the robot's back on the only wall with markers leaves the landm
     a_j   = f D_j / rho_j                                 a colour ball's diameter, px
     m_j   = (a_j / 2 + margin) / f                        its half size and the border margin, rad
 
-It is in reach when the head's yaw and pitch limits can put it wholly inside the image, and the
-head gets there from the object in time for a standing look (station/pilot.py: at most
-``look_reach`` = (lookout_stand_dwell - lookout_still) x head speed of yaw from the head on the
-object, whose bearing b_o is clipped to the yaw limits alike)::
+It is in reach when the head's yaw and pitch limits can put it wholly inside the image::
 
     yaw_min - h_h + m_j <= b_j <= yaw_max + h_h - m_j          h_h = hfov / 2
     -p_hi(y_j) - h_v + m_j <= e_j <= -p_lo(y_j) + h_v - m_j    h_v = vfov / 2, y_j = clip(b_j, yaw limits),
                                                                [p_lo, p_hi] the pitch limits at y_j (down positive)
     a_j >= a_min,  cos phi_j > 0 (ArUco)                       the localizer's prediction rules
                                                                (``aruco_min_side_px``; a ball's ``landmark_min_area``)
-    |y_j - clip(b_o, yaw limits)| <= look_reach                the head's turn from the object
 
 and the pose's reachable points are n = sum_j k_j [in reach], k_j = 4 for a marker (its corners), 1
 for a ball. A fix needs ``min_points`` in one frame: n counts over the whole head range, so it is
@@ -50,7 +46,7 @@ class LandmarkReach:
     """The landmark points each robot pose's head can bring into view (module docstring)."""
 
     def __init__(self, landmark_map: LandmarkMap, robot: RobotModel, camera: CameraModel,
-                 localization: LocalizationParams, perception: Optional[PerceptionParams], look_reach: float = math.inf):
+                 localization: LocalizationParams, perception: Optional[PerceptionParams]):
         landmarks = [lm for lm in landmark_map.landmarks if lm.kind == "aruco" or perception is not None]
         self.aruco = np.array([lm.kind == "aruco" for lm in landmarks], bool)
         self.centres = np.array([lm.position for lm in landmarks], float).reshape(-1, 3)
@@ -67,11 +63,9 @@ class LandmarkReach:
         self.camera_height = robot.neck_height + robot.camera.offset[2]
         self.yaw_limits = robot.head.yaw
         self.pitch_by_yaw = np.asarray(robot.head.pitch_by_yaw, float)
-        self.look_reach = look_reach  # rad of head yaw a look may turn from the object
 
-    def in_reach(self, poses: np.ndarray, target: Optional[np.ndarray] = None) -> np.ndarray:
-        """Whether each landmark is in reach (..., J) of planar robot poses (..., 3) whose head is on the
-        object at ``target`` (x, y) (None: anywhere in its range) (module docstring)."""
+    def in_reach(self, poses: np.ndarray) -> np.ndarray:
+        """Whether each landmark is in reach (..., J) of planar robot poses (..., 3) (module docstring)."""
         poses = np.asarray(poses, float)[..., None, :]
         dx, dy = self.centres[:, 0] - poses[..., 0], self.centres[:, 1] - poses[..., 1]
         rise = self.centres[:, 2] - self.camera_height
@@ -86,17 +80,12 @@ class LandmarkReach:
         p_hi = np.interp(yaw, self.pitch_by_yaw[:, 0], self.pitch_by_yaw[:, 2])
         across = (bearing >= self.yaw_limits[0] - self.half_hfov + half) & (bearing <= self.yaw_limits[1] + self.half_hfov - half)
         upright = (elevation >= -p_hi - self.half_vfov + half) & (elevation <= -p_lo + self.half_vfov - half)
-        reachable = across & upright & (size_px >= self.min_px) & (~self.aruco | (facing > 0.0))
-        if target is None:
-            return reachable
-        object_yaw = np.clip(wrap_angle(np.arctan2(target[1] - poses[..., 1], target[0] - poses[..., 0]) - poses[..., 2]),
-                             *self.yaw_limits)
-        return reachable & (np.abs(yaw - object_yaw) <= self.look_reach)
+        return across & upright & (size_px >= self.min_px) & (~self.aruco | (facing > 0.0))
 
-    def points(self, poses: np.ndarray, target: Optional[np.ndarray] = None) -> np.ndarray:
-        """The reachable landmark points n (...,) of planar robot poses (..., 3), the head on ``target``."""
-        return np.sum(self.in_reach(poses, target) * self.counts, axis=-1)
+    def points(self, poses: np.ndarray) -> np.ndarray:
+        """The reachable landmark points n (...,) of planar robot poses (..., 3)."""
+        return np.sum(self.in_reach(poses) * self.counts, axis=-1)
 
-    def starved(self, poses: np.ndarray, target: Optional[np.ndarray] = None) -> np.ndarray:
-        """Whether no fix is possible from planar robot poses (..., 3), the head on ``target``: n < ``min_points``."""
-        return self.points(poses, target) < self.min_points
+    def starved(self, poses: np.ndarray) -> np.ndarray:
+        """Whether no fix is possible from planar robot poses (..., 3): n < the localizer's ``min_points``."""
+        return self.points(poses) < self.min_points

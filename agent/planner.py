@@ -33,7 +33,7 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
     c_m  landmark reach (not in the paper; given a :class:`agent.landmark_reach.LandmarkReach`): the
                        share of the horizon's robot poses p_k from which no landmark fix is possible,
                        mean_k [n(p_k) < min_points], n the landmark points the head can bring into view
-                       there, in time for a standing look from the object's direction. Zero wherever markers are in the head's reach (all of a room with
+                       there. Zero wherever markers are in the head's reach (all of a room with
                        markers all round); with markers on some walls only, it keeps the robot from
                        turning its back on them (docs/planner.md, "Landmark reach").
     c_clear            hard clearance: W_clear sum_k max(0, r + clearance + m_k - |o - p_k|)^2 over the
@@ -375,7 +375,7 @@ class Planner:
                 "wall": (np.zeros(len(poses)) if walls is None
                          else wall_cost(keep_in.distances(poses[..., :2], walls), p.wall_clearance)),
                 "landmarks": (np.zeros(len(poses)) if landmarks is None
-                              else w.landmarks * np.mean(landmarks.starved(poses, target), axis=-1)),
+                              else w.landmarks * np.mean(landmarks.starved(poses), axis=-1)),
             }
             return sum(terms.values()), terms
 

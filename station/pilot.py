@@ -250,8 +250,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
-        self.landmark_reach = LandmarkReach(config.landmarks, self.robot, self.camera, config.localization, config.perception,
-                                            self._look_reach_rad)
+        self.landmark_reach = LandmarkReach(config.landmarks, self.robot, self.camera, config.localization, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera, self.localizer.tilt)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
@@ -647,10 +646,8 @@ class Pilot:
 
     def _look_reach(self) -> Optional[float]:
         """rad a standing look may turn the head from where it is (module docstring), or None (head angles unknown)."""
-        return self._look_reach_rad if self._head is not None and all(map(math.isfinite, self._head)) else None
-
-    @property
-    def _look_reach_rad(self) -> float:
+        if self._head is None or not all(map(math.isfinite, self._head)):
+            return None
         p = self.config.mission
         return (p.lookout_stand_dwell - p.lookout_still) * self.config.station.head_speed * self.robot.head.max_speed
 

@@ -54,18 +54,6 @@ def test_a_marker_is_out_of_reach_facing_away_too_small_or_above_the_head_s_pitc
     assert reachable.in_reach(pose).all()
 
 
-def test_a_marker_too_far_from_the_object_s_direction_for_a_standing_look_is_out_of_reach():
-    """The head on an object at its yaw limit: a standing look turns it at most look_reach (station/pilot.py),
-    so a marker straight ahead, 2 rad from the object's clipped bearing, is out of reach; one 1 rad away is in."""
-    look = 1.5
-    ahead, aside = marker(1.5, 0.0, HEIGHT, math.pi), marker(1.5 * math.cos(1.1), 1.5 * math.sin(1.1), HEIGHT, math.pi + 1.1, id=1)
-    reach = LandmarkReach(LandmarkMap((ahead, aside)), MODEL, CAMERA, CONFIG.localization, CONFIG.perception, look)
-    pose, left = np.zeros(3), np.array([0.0, 0.8])  # the object 90 deg to the left: the head at yaw 1.57
-    assert reach.in_reach(pose).tolist() == [True, True]  # anywhere in the head's range
-    assert reach.in_reach(pose, left).tolist() == [False, True]
-    assert not reach.starved(pose, left) and reach_of(ahead).starved(pose, left) == reach_of(ahead).starved(pose)
-
-
 def test_balls_count_one_point_each_and_need_the_perception_config():
     balls = [Landmark(id=f"b{k}", kind="color", color="red", diameter=0.1, position=(1.5, 0.3 * k, HEIGHT)) for k in range(3)]
     with_colours = LandmarkReach(LandmarkMap(tuple(balls)), MODEL, CAMERA, CONFIG.localization, CONFIG.perception)
