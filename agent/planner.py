@@ -6,7 +6,7 @@ holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 
-    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + l_m c_m + mu |w|^2 + c_clear + c_wall
+    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + mu |w|^2 + c_clear + c_wall
 
 evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{t+D}):
 
@@ -30,12 +30,6 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
                        (base below the reachable view, top above it, extent taller than the view). It
                        pushes the orbit out when the head is turned far (small p_hi) or, walking
                        omnidirectionally, turns the body toward the object (small yaw, larger p_hi).
-    c_m  landmark reach (not in the paper; given a :class:`agent.landmark_reach.LandmarkReach`): the
-                       share of the horizon's robot poses p_k from which no landmark fix is possible,
-                       mean_k [n(p_k) < min_points], n the landmark points the head can bring into view
-                       there. Zero wherever markers are in the head's reach (all of a room with
-                       markers all round); with markers on some walls only, it keeps the robot from
-                       turning its back on them (docs/planner.md, "Landmark reach").
     c_clear            hard clearance: W_clear sum_k max(0, r + clearance + m_k - |o - p_k|)^2 over the
                        horizon, W_clear = 1e6, so any sequence keeping the clearance beats any that
                        breaks it, and when none can, the least violating one wins. m_k is the
@@ -76,7 +70,6 @@ from agent.camera import CameraModel
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
 from agent.keep_in import KeepIn, reachable_bins
-from agent.landmark_reach import LandmarkReach
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import wrap_angle
@@ -89,14 +82,13 @@ FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient
 
 @dataclass(frozen=True)
 class Weights:
-    """lambda_l, lambda_v, lambda_r, lambda_d, lambda_h, lambda_m and mu of the cost."""
+    """lambda_l, lambda_v, lambda_r, lambda_d, lambda_h and mu of the cost."""
 
     uncertainty: float = field(metadata=bounds(0.0, 1e9))
     view: float = field(metadata=bounds(0.0, 1e9))
     coverage: float = field(metadata=bounds(0.0, 1e9))
     distance: float = field(metadata=bounds(0.0, 1e9))
     vertical: float = field(metadata=bounds(0.0, 1e9))  # lambda_h
-    landmarks: float = field(metadata=bounds(0.0, 1e9))  # lambda_m
     effort: float = field(metadata=bounds(0.0, 1e9))
 
 
@@ -268,7 +260,7 @@ class Plan:
     omegas: np.ndarray  # (D,) rad/s
     command: Tuple[float, float, float]  # (v, vy, omega) within the walk limits
     cost: float
-    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, vertical, clearance, wall, landmarks
+    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, vertical, clearance, wall
     evaluations: int  # candidate sequences whose cost was computed
     lateral_speed: float = 0.0  # v_y over the horizon, m/s (0 unless omnidirectional)
     clearance_margin: float = 0.0  # the uncertainty margin m at the robot's next position, m
@@ -343,11 +335,10 @@ class Planner:
 
     def cost_function(
         self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray, height: Optional[float] = None,
-        keep_in: Optional[KeepIn] = None, landmarks: Optional[LandmarkReach] = None,
+        keep_in: Optional[KeepIn] = None,
     ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
         """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief;
-        ``keep_in``: the walls to keep off, ``landmarks``: the landmarks to keep in reach (robot_pose in
-        the landmark map's frame)."""
+        ``keep_in``: the walls to keep off (robot_pose in the landmark map's frame)."""
         p, w = self.params, self.params.weights
         target = x[:2]
         height = p.object_height if height is None else height
@@ -374,8 +365,6 @@ class Planner:
                 ),
                 "wall": (np.zeros(len(poses)) if walls is None
                          else wall_cost(keep_in.distances(poses[..., :2], walls), p.wall_clearance)),
-                "landmarks": (np.zeros(len(poses)) if landmarks is None
-                              else w.landmarks * np.mean(landmarks.starved(poses), axis=-1)),
             }
             return sum(terms.values()), terms
 
@@ -391,12 +380,11 @@ class Planner:
         return self.params.weights.vertical * cost
 
     def plan(self, robot_pose, x, P, coverage: Coverage, object_height: Optional[float] = None,
-             keep_in: Optional[KeepIn] = None, landmarks: Optional[LandmarkReach] = None) -> Plan:
+             keep_in: Optional[KeepIn] = None) -> Plan:
         """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P).
 
         ``object_height``: the object's top above the floor, m, when the silhouettes bound it (else the
-        configured ``object_height``). ``keep_in``: the walls to keep off (c_wall), ``landmarks``: the
-        landmarks to keep in reach (c_m), the pose in their frame."""
+        configured ``object_height``). ``keep_in``: the walls to keep off (c_wall), the pose in their frame."""
         robot_pose = _checked("robot_pose", robot_pose, (3,))
         x = _checked("x", x, (3,))
         P = _checked("P", P, (3, 3))
@@ -404,7 +392,7 @@ class Planner:
             raise ValueError(f"x: object radius must be positive, got {x[2]}")
         if object_height is not None and not (math.isfinite(object_height) and object_height > 0.0):
             raise ValueError(f"object_height: expected a positive height in m, got {object_height}")
-        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height, keep_in, landmarks)
+        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height, keep_in)
         optimize = self._cem if self.params.optimizer == "cem" else self._nelder_mead
         best, evaluations = optimize(evaluate, self._warm_start())
         total, terms = evaluate(best[None])

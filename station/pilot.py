@@ -89,8 +89,7 @@ object target or ``lookout_settle`` s have passed. Whatever the phase, a walk co
 object (v cos b + v_y sin b > 0, b its bearing in the robot frame) is cut to its turn when the
 object is nearer than ``mission.min_image_distance`` to the robot's origin by the image alone, and
 once anchored, one that approaches a wall the landmark map shows (agent/keep_in.py) nearer than
-``mission.wall_stop``; the planner itself keeps ``planner.wall_clearance`` off them, and the
-landmarks within the head's reach (agent/landmark_reach.py).
+``mission.wall_stop``; the planner itself keeps ``planner.wall_clearance`` off them.
 The image's surface point (camera C, distance d from agent/clearance.py along the measured
 azimuth a) is kept in the odometry frame O, independent of the landmark pose and the filter::
 
@@ -137,7 +136,6 @@ import numpy as np
 from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import floor_contact, floor_distance, image_distance
 from agent.keep_in import KeepIn
-from agent.landmark_reach import LandmarkReach
 from agent.coverage import Coverage, seen_fraction
 from agent.ekf import FloorContact, ObjectEKF, UpdateResult
 from agent.head_servo import ObjectHeight, head_target
@@ -250,7 +248,6 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
-        self.landmark_reach = LandmarkReach(config.landmarks, self.robot, self.camera, config.localization, config.perception)
         self.calibration = SelfCalibration(config.self_calibration, self.camera, self.localizer.tilt)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
@@ -715,9 +712,7 @@ class Pilot:
                            + (f", none new for {termination.stall:g} s)" if stalled else ")"))
             self.mission.on_goal(t, reason)
             return
-        anchored = self.anchored  # the walls and landmarks are in the map's frame
-        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, self.keep_in if anchored else None,
-                                 self.landmark_reach if anchored else None)
+        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, self.keep_in if self.anchored else None)
         self.command = plan.command
         step.outputs.append(PlanRecord(t, [float(w) for w in plan.omegas], tuple(map(float, plan.command)), float(plan.cost),
                                        {k: float(v) for k, v in plan.terms.items()}, int(plan.evaluations),

@@ -145,7 +145,7 @@ def test_plan_terms_add_up_and_the_command_is_within_limits():
     x, P = np.array([2.0, 0.0, 0.1]), np.diag([0.02, 0.5, 0.05]) ** 2
     plan = planner.plan(np.zeros(3), x, P, Coverage(PARAMS.coverage, HFOV))
     assert plan.cost == pytest.approx(sum(plan.terms.values()))
-    assert set(plan.terms) == {"uncertainty", "view", "coverage", "distance", "vertical", "effort", "clearance", "wall", "landmarks"}
+    assert set(plan.terms) == {"uncertainty", "view", "coverage", "distance", "vertical", "effort", "clearance", "wall"}
     assert plan.omegas.shape == (PARAMS.horizon,) and np.all(np.abs(plan.omegas) <= ROBOT.walk.omega_max)
     v, vy, omega = plan.command
     assert (v, vy) == (PARAMS.speed, 0.0) and omega == plan.omegas[0]
