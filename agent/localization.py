@@ -848,6 +848,8 @@ class RobotLocalizer:
         self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
         self._roll_sigma = params.roll_sigma
+        s = params.gate_floor_std
+        self._floor = np.diag([s[0], s[0], s[1]]) ** 2  # F of (x, y, theta): what a fix's covariance misses (module docstring)
         self.tilt = CameraTilt(params.camera_tilt_sigma, params.camera_tilt_floor)  # the camera on its mount
         self._tilt_covariance = np.eye(2)  # the frame's prior on (delta, epsilon) (``_set_tilt_prior``)
         self._tilt_prior = np.zeros((5, 5))  # its information, pixel units
@@ -1518,12 +1520,6 @@ class RobotLocalizer:
         if not np.all(np.abs(_difference(pose, prior)) <= p.jump_sigmas * np.sqrt(np.diag(covariance)) + floor):
             return False
         return _mahalanobis(pose, prior, covariance + self._floor) <= p.jump_chi2
-
-    @property
-    def _floor(self) -> np.ndarray:
-        """F = diag(``gate_floor_std``)^2 of (x, y, theta): what a fix's covariance misses (module docstring)."""
-        s = self.params.gate_floor_std
-        return np.diag([s[0], s[0], s[1]]) ** 2
 
     @property
     def intrinsics_covariance(self) -> np.ndarray:

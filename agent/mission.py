@@ -269,6 +269,11 @@ class Mission:
         return (f"; the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall or "
                 f"something large has its colour (docs/perception.md, \"Colours\")")
 
+    @property
+    def head(self) -> Optional[Tuple[float, float]]:
+        """The latest head angles (yaw, pitch) the robot's state reported, rad, or None before the first."""
+        return self._head
+
     def _head_centred(self) -> bool:
         return self._head_at(0.0, self.params.init_pitch)
 

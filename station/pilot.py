@@ -272,7 +272,6 @@ class Pilot:
         ray = self.camera.pixels_to_rays(np.array([[self.camera.width / 2.0, self.camera.height - 1.0]]))[0]
         self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
-        self._head: Optional[Tuple[float, float]] = None  # latest head angles (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._lookout: Optional[Tuple[Tuple[bool, int], Tuple[float, float]]] = None  # ((standing, slot), head target) while looking away
         self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
@@ -293,7 +292,6 @@ class Pilot:
         state = event.state
         self.localizer.on_odometry(state.odom, state.stamp)
         self._odom = tuple(float(v) for v in state.odom)
-        self._head = (float(state.head_yaw), float(state.head_pitch))
         self.mission.on_state(event.t, state.fallen, state.walking, state.head_yaw, state.head_pitch)
         return Step()
 
@@ -631,19 +629,20 @@ class Pilot:
                 self._lookout, self._t_back = None, t
             return None
         if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
-            reach = self._look_reach() if slot[0] else None
+            head, reach = self.mission.head, self._look_reach() if slot[0] else None
             directions = [d for d in self._directions if not any(head_at(d, f, FRUITLESS_RADIUS) for f in self._fruitless)
-                          and (reach is None or head_at(d, self._head, reach))]
+                          and (reach is None or head_at(d, head, reach))]
             view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
             scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
             if reach is not None:
-                scan = min(max(scan, self._head[0] - reach), self._head[0] + reach)
+                scan = min(max(scan, head[0] - reach), head[0] + reach)
             self._lookout = (slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
         return self._lookout[1]
 
     def _look_reach(self) -> Optional[float]:
         """rad a standing look may turn the head from where it is (module docstring), or None (head angles unknown)."""
-        if self._head is None or not all(map(math.isfinite, self._head)):
+        head = self.mission.head
+        if head is None or not all(map(math.isfinite, head)):
             return None
         p = self.config.mission
         return (p.lookout_stand_dwell - p.lookout_still) * self.config.station.head_speed * self.robot.head.max_speed

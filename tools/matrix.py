@@ -354,8 +354,11 @@ def _pair(values: Optional[Tuple[float, float]], scale: float, digits: int = 1) 
     return "-" if values is None else f"{_fmt(values[0], scale, digits)} / {_fmt(values[1], scale, digits)}"
 
 
+MATRIX_COMMAND = "`make matrix`, `python -m tools.matrix`"  # what the matrix section says ran it
+
+
 def table(results: List[MissionResult], resolution: str, machine: str = "", ranges: Optional[Randomizer] = None,
-          command: str = "`make matrix`, `python -m tools.matrix`") -> str:
+          command: str = MATRIX_COMMAND) -> str:
     """Markdown: a summary per object kind and overall, then one row per mission; ``machine`` says where and
     when, ``ranges`` the randomizer the worlds were drawn with (default config/sim.yaml's), ``command`` what ran them."""
     done = [r for r in results if r.outcome == "completed"]
@@ -474,7 +477,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
     name = "stress" if args.ranges else "matrix"
-    command = f"`python -m tools.matrix --ranges {args.ranges}`" if args.ranges else "`make matrix`, `python -m tools.matrix`"
+    command = f"`python -m tools.matrix --ranges {args.ranges}`" if args.ranges else MATRIX_COMMAND
     write_section(args.doc, table(results, resolution, machine, ranges, command), name)
     print(f"matrix: wrote the {name} section of {args.doc}", file=sys.stderr)
     return 0
