@@ -93,6 +93,7 @@ class MissionParams:
     lookout_stand_dwell: float = field(metadata=bounds(0.1, 60.0))
     lookout_still: float = field(metadata=bounds(0.0, 60.0))
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
+    lookout_head_speed: float = field(metadata=bounds(0.01, 1.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this
     relocalize_shift: float = field(metadata=bounds(0.0, 100.0))  # m or rad: a fix moving the pose further rebuilds the object filter
@@ -115,6 +116,7 @@ class Decision:
     phase: Phase
     walk: Optional[Tuple[float, float, float]] = None  # (v, vy, omega)
     head: Optional[Tuple[float, float]] = None  # (yaw, pitch)
+    head_speed: Optional[float] = None  # fraction of the head's maximum speed; None: the station's ``head_speed``
     stop: bool = False
     outcome: Optional[Outcome] = None
     reason: str = ""

@@ -56,8 +56,9 @@ Per ``Tick``: the mission decides (:mod:`agent.mission`). ACTIVE starts with the
 standstill when the map can give a fix to store (agent/self_calibration.py), from the first tick
 with an object estimate (a side-cut sighting alone gives none, and the scan would look away from
 it): a zero walk, the head alternating between the object and the directions predicted from the
-pose to show a fix to store (agent/standstill.py: each dwell counted from the head's arrival,
-fixes are stored once it has settled), until an estimate is applied, its time is up or a cycle of
+pose to show a fix to store within ``standstill_travel`` x the head's look speed of the object's
+direction (agent/standstill.py: each dwell counted from the head's arrival, fixes are stored once
+it has settled; the head at ``mission.lookout_head_speed``), until an estimate is applied, its time is up or a cycle of
 views stored nothing; tried again ``standstill_interval`` s later while no estimate is applied,
 ``standstill_attempts`` in all (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
@@ -80,7 +81,16 @@ the mission ends when the object is unseen for ``object_lost_timeout``). A stand
 only the directions the head reaches in time, ``(lookout_stand_dwell - lookout_still) x head speed``
 from where the head is (on both joints; the scan yaw, when none predicts a fix, is cut to it): with
 the object at the head's yaw limit, the best views lay 2.7 rad away and the head never got there
-(matrix seed 38, ``landmarks_lost``). A standing look that gave
+(matrix seed 38, ``landmarks_lost``). In a drought every head command goes at
+``lookout_head_speed`` (0.5 of the maximum against the station's 0.25: the reach is then 3 rad, and a
+one-wall room's markers lay 1.8-2.7 rad from the object, docs/landmarks.md). When no direction the
+head reaches predicts a fix, a standing look searches every direction round the robot the head
+reaches by turning the other way or once the body has turned: body yaw y (taken as y or y +- 2 pi,
+whichever is nearer the head, within the reach) is looked at by turning the body in place by
+tau = y - clip(y, lo + ``TURN_MARGIN``, hi - ``TURN_MARGIN``), omega = clip((heading goal - theta) /
+``TURN_TIME``, +-omega_max) while the look lasts, the head at y - tau, unless the object's yaw minus
+tau leaves the head's range [lo, hi] (one-wall rooms: the orbit kept the wall behind the robot's
+shoulder, or 4 rad round the head from the object at its yaw limit, for 20 s). A standing look that gave
 no fix rules out the directions within ``FRUITLESS_RADIUS`` of it until the next fix (the
 prediction was wrong there: the view of matrix world 0 chosen three times in a row gave none). No
 keyframe is taken while
@@ -170,6 +180,8 @@ VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a min
 FACING_TOLERANCE = 0.05  # rad: a head pitch this near its limit at the head's yaw is at the limit (joint tracking, sensor lag)
 MEASURED_RADIUS = 0.5  # the radius std below this share of its prior: widths were measured, no facing turn
 FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
+TURN_MARGIN = 0.3  # rad inside the head's yaw limit where a body turn brings a look beyond it
+TURN_TIME = 0.5  # s: a standing look's body turn closes its heading error at omega = error / TURN_TIME (at most omega_max)
 
 
 @dataclass(frozen=True)
@@ -183,6 +195,14 @@ class KeyframeView:
     image: Optional[np.ndarray] = None  # the frame (BGR), for the model's vertex colours
     quality: float = 1.0  # agent/keyframes.py: pose precision x silhouette quality at capture
     camera: Optional[CameraModel] = None  # the intrinsics it was seen with (self-calibration), None: the bridge's
+
+
+class Lookout(NamedTuple):
+    """A look away from the object at the landmarks (module docstring, Active localization)."""
+
+    slot: Tuple[bool, int]  # (standing, dwell index): one search per dwell
+    head: Tuple[float, float]  # (yaw, pitch) target
+    heading: Optional[float] = None  # world heading the body turns to first (a look beyond the head's yaw range), else None
 
 
 @dataclass
@@ -273,7 +293,8 @@ class Pilot:
         self._bottom_row_angle = math.atan2(float(ray[1]), float(ray[2]))  # bottom row below the optical axis, rad
         self._odom: Optional[Pose] = None  # latest odometry reading (robot state)
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
-        self._lookout: Optional[Tuple[Tuple[bool, int], Tuple[float, float]]] = None  # ((standing, slot), head target) while looking away
+        self._around = head_directions(replace(self.robot.head, yaw=(-math.pi, math.pi)))  # with the body turned
+        self._lookout: Optional[Lookout] = None  # while looking away
         self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
         self._t_back: Optional[float] = None  # when the head was last sent back to the object after a lookout
@@ -320,13 +341,16 @@ class Pilot:
         decision = self.mission.tick(t)
         if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=not self._facing_turn):
             p = self.config.self_calibration
-            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self.standstill.head(t, self._object_head()), reason=(
+            decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self.standstill.head(t, self._object_head()),
+                                head_speed=self.config.mission.lookout_head_speed, reason=(
                 f"self-calibration: standing for landmark views ({len(self.calibration.fixes)} of {p.min_frames} fixes, "
                 f"standstill {self.standstill.attempts} of {p.standstill_attempts})"))
         elif decision.phase is Phase.ACTIVE:
             centroid, head_at_capture = self._servo_sighting()
-            head = self._landmark_lookout(t)
-            if head is None:
+            look = self._landmark_lookout(t)
+            standing = self._drought(t) > 0.0  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
+            speed = self.config.mission.lookout_head_speed if standing else None
+            if look is None:
                 head = head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera,
                                    head_at_capture, self.height.aim)
                 if self._base_pitch is not None and head[1] < self._base_pitch:  # the base was cut: look down at it
@@ -334,13 +358,14 @@ class Pilot:
                 self._object_gaze = head
                 facing = "facing the object: its base is below the head's reach at this yaw" if self._facing_turn else ""
                 walk = (0.0, 0.0, self._facing_turn) if self._facing_turn else self.command
-                decision = Decision(decision.phase, walk=walk, head=head, reason=facing)
+                decision = Decision(decision.phase, walk=walk, head=head, head_speed=speed, reason=facing)
             else:
                 p = self.config.mission
-                standing = self._drought(t) > 0.0  # frames smeared by walking show no small marker (docs/frames.md "Exposure")
-                decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0) if standing else self.command, head=head, reason=(
+                turn = "" if look.heading is None else f", turning to {look.heading:.2f} rad"
+                decision = Decision(decision.phase, walk=self._look_walk(look) if standing else self.command, head=look.head,
+                                    head_speed=speed, reason=(
                     f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
-                    + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s" if standing else "")))
+                    + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s{turn}" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
             decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
         if decision.walk is not None and not decision.stop:
@@ -577,12 +602,19 @@ class Pilot:
         """Head directions from the current pose predicted to show a fix the self-calibration stores
         (``min_points`` points of ``min_landmarks`` landmarks), most points first, at most
         ``standstill_views`` of them at least ``standstill_view_spacing`` apart in yaw (distinct
-        geometry: one view's fixes repeat each other)."""
+        geometry: one view's fixes repeat each other), each within ``standstill_travel`` x the head's
+        speed for looks (``mission.lookout_head_speed``) of the object's direction: the head there and
+        back and a dwell before the object is lost (one-wall world 31: views 4.2 rad away at 1 rad/s,
+        the object unseen 9 s, ``object_lost``)."""
         p = self.config.self_calibration
         if self.pose is None or not self.anchored:
             return []
+        reach = p.standstill_travel * self.config.mission.lookout_head_speed * self.robot.head.max_speed
+        on_object = self._object_head()
         scored = []
         for yaw, pitch in self._directions:
+            if not head_at((yaw, pitch), on_object, reach):
+                continue
             points, landmarks = self.localizer.visible_landmarks(self.pose, self.robot.camera_in_robot(yaw, pitch))
             if points >= p.min_points and landmarks >= p.min_landmarks:
                 scored.append((points, yaw, pitch))
@@ -608,8 +640,8 @@ class Pilot:
         """s past ``lookout_stand`` without a fix: positive while the lookouts stand (module docstring)."""
         return self.mission.since_fix(t) - self.config.mission.lookout_stand
 
-    def _landmark_lookout(self, t: float) -> Optional[Tuple[float, float]]:
-        """ACTIVE: the landmark direction to look at now, or None to follow the object (module docstring)."""
+    def _landmark_lookout(self, t: float) -> Optional[Lookout]:
+        """ACTIVE: the look at the landmarks to make now, or None to follow the object (module docstring)."""
         p = self.config.mission
         pose = self.localizer.pose
         drought = self._drought(t)
@@ -624,20 +656,46 @@ class Pilot:
             self._fruitless.clear()
         if pose is None or not uncertain or not looking:
             if self._lookout is not None:
-                if self._lookout[0][0] and drought > 0.0:  # a standing look that gave no fix: look elsewhere next
-                    self._fruitless.append(self._lookout[1])
+                if self._lookout.slot[0] and self._lookout.heading is None and drought > 0.0:  # a still look without a fix
+                    self._fruitless.append(self._lookout.head)
                 self._lookout, self._t_back = None, t
             return None
-        if self._lookout is None or self._lookout[0] != slot:  # one search per dwell, from the pose at its start
+        if self._lookout is None or self._lookout.slot != slot:  # one search per dwell, from the pose at its start
             head, reach = self.mission.head, self._look_reach() if slot[0] else None
             directions = [d for d in self._directions if not any(head_at(d, f, FRUITLESS_RADIUS) for f in self._fruitless)
                           and (reach is None or head_at(d, head, reach))]
             view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
+            turned = self._turned_look(slot, pose, head, reach) if view is None and reach is not None else None
             scan = p.search_head_yaws[(slot[1] // 2) % len(p.search_head_yaws)]
             if reach is not None:
                 scan = min(max(scan, head[0] - reach), head[0] + reach)
-            self._lookout = (slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
-        return self._lookout[1]
+            self._lookout = turned or Lookout(slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
+        return self._lookout
+
+    def _turned_look(self, slot: Tuple[bool, int], pose: Pose, head: Tuple[float, float], reach: float) -> Optional[Lookout]:
+        """The best standing look the head reaches only with the body turned (module docstring), or None."""
+        lo, hi = self.robot.head.yaw
+        on_object = self._object_gaze or head
+
+        def turn(yaw: float) -> float:
+            return yaw - min(max(yaw, lo + TURN_MARGIN), hi - TURN_MARGIN)
+
+        directions = []
+        for yaw, pitch in self._around:
+            yaw = min((yaw - 2.0 * math.pi, yaw, yaw + 2.0 * math.pi), key=lambda y: abs(y - head[0]))  # the way the head turns
+            if abs(yaw - head[0]) <= reach and turn(yaw) != 0.0 and lo <= on_object[0] - turn(yaw) <= hi:
+                directions.append((yaw, pitch))
+        view = self.localizer.best_landmark_view(pose, self.robot.camera_in_robot, directions)
+        if view is None:
+            return None
+        return Lookout(slot, self.robot.head.clamp(view.yaw - turn(view.yaw), view.pitch), wrap_angle(pose[2] + turn(view.yaw)))
+
+    def _look_walk(self, look: Lookout) -> Tuple[float, float, float]:
+        """A standing look's walk: still, or the turn in place towards its heading (module docstring)."""
+        if look.heading is None or self.pose is None:
+            return (0.0, 0.0, 0.0)
+        omega_max = self.robot.walk.omega_max
+        return (0.0, 0.0, min(max(wrap_angle(look.heading - self.pose[2]) / TURN_TIME, -omega_max), omega_max))
 
     def _look_reach(self) -> Optional[float]:
         """rad a standing look may turn the head from where it is (module docstring), or None (head angles unknown)."""
@@ -645,7 +703,7 @@ class Pilot:
         if head is None or not all(map(math.isfinite, head)):
             return None
         p = self.config.mission
-        return (p.lookout_stand_dwell - p.lookout_still) * self.config.station.head_speed * self.robot.head.max_speed
+        return (p.lookout_stand_dwell - p.lookout_still) * p.lookout_head_speed * self.robot.head.max_speed
 
     def _gaze_on_object(self, t: float, head: Tuple[float, float]) -> bool:
         """May a frame captured with this head be a keyframe: not looking away, and back on the object since."""

@@ -283,7 +283,7 @@ class ControlLoop:
         if decision.walk is not None:
             self._send_walk(*decision.walk)
         if decision.head is not None:
-            self._send_head(*decision.head)
+            self._send_head(*decision.head, decision.head_speed or self.config.station.head_speed)
         return decision.finished
 
     def _visualize(self, record: Record, t: float) -> None:
@@ -316,9 +316,9 @@ class ControlLoop:
         t = self.clock()
         self._later(self.log.json, CMD_WALK, encode(command), t, json_schema(WalkCommand))
 
-    def _send_head(self, yaw: float, pitch: float) -> None:
+    def _send_head(self, yaw: float, pitch: float, speed: float) -> None:
         yaw, pitch = self.pilot.robot.head.clamp(yaw, pitch)
-        command = self.link.send_head(yaw, pitch, self.config.station.head_speed)
+        command = self.link.send_head(yaw, pitch, speed)
         t = self.clock()
         self._later(self.log.json, CMD_HEAD, encode(command), t, json_schema(HeadCommand))
 

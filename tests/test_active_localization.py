@@ -12,10 +12,13 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
+import yaml
 
 from agent.head_servo import head_target
 from agent.localization import PoseFix, head_directions
 from agent.mission import Phase
+from nao_core.landmark_map import load_landmark_map
 from nao_core.protocol import Frame, FrameMeta, Info
 from nao_core.robot_model import load_robot_model
 from station.config import load_station_config
@@ -60,9 +63,9 @@ class Fixes:
         return self.real(image, T_BC, prior, *rest)
 
 
-def active_pilot(monkeypatch):
-    """A pilot in ACTIVE at START with a fresh fix and an object estimate at the origin."""
-    pilot = Pilot(CONFIG, INFO)
+def active_pilot(monkeypatch, config=CONFIG, target=(0.0, 0.0)):
+    """A pilot in ACTIVE at START with a fresh fix and an object estimate at ``target`` (the origin)."""
+    pilot = Pilot(config, INFO)
     fixes = Fixes(pilot.localizer.measure)
     monkeypatch.setattr(pilot.localizer, "measure", fixes)
     pilot.handle(StateReceived(0.0, state(0.0, (0.0, 0.0, 0.0))))
@@ -71,7 +74,7 @@ def active_pilot(monkeypatch):
     fixes.pending = 1
     pilot.handle(FrameReceived(0.1, frame(1, 0.1, (0.0, 0.0, 0.0))))
     assert pilot.anchored
-    pilot.ekf.initialize((START[0], START[1], 0.0), 0.0, 0.1)
+    pilot.ekf.initialize((START[0], START[1], math.atan2(target[1] - START[1], target[0] - START[0])), 0.0, 0.1)
     pilot.mission.on_frame(0.1, True, True, True)
     assert pilot.mission.phase is Phase.ACTIVE
     return pilot, fixes
@@ -192,7 +195,7 @@ def test_a_standing_look_goes_only_where_the_head_gets_in_time(monkeypatch):
     the head back on the object before it got there, no fix in 20 s); those directions still predict a fix."""
     pilot, _ = active_pilot(monkeypatch)
     p = CONFIG.mission
-    reach = (p.lookout_stand_dwell - p.lookout_still) * CONFIG.station.head_speed * MODEL.head.max_speed
+    reach = (p.lookout_stand_dwell - p.lookout_still) * p.lookout_head_speed * MODEL.head.max_speed
     t = 0.1 + p.lookout_stand + 0.5
     pilot.mission.on_frame(t, True, False, True)  # the object seen, no fix: a standing look
     best = pilot.localizer.best_landmark_view(pilot.localizer.pose, MODEL.camera_in_robot, head_directions(MODEL.head))
@@ -203,3 +206,73 @@ def test_a_standing_look_goes_only_where_the_head_gets_in_time(monkeypatch):
     assert look.walk == (0.0, 0.0, 0.0) and "standing" in look.reason
     assert max(abs(look.head[0] - head[0]), abs(look.head[1] - head[1])) <= reach + 1e-9, (head, look.head, reach)
     assert pilot.localizer.predicted_fix(pilot.localizer.pose, MODEL.camera_in_robot(*look.head))[1] is not None
+
+
+def one_wall(tmp_path, bearing: float):
+    """The station config with one wall of six 12 cm markers 1.6 m from START at ``bearing`` (world),
+    facing the robot: the room of a user who taped markers on one wall."""
+    centre = np.array(START[:2]) + 1.6 * np.array([math.cos(bearing), math.sin(bearing)])
+    facing = bearing - math.pi
+    along = np.array([-math.sin(facing), math.cos(facing)])
+    markers = [{"kind": "aruco", "dictionary": "DICT_4X4_50", "id": i, "size": 0.12, "yaw": facing,
+                "position": [*map(float, centre + s * along), 0.35 if i % 2 else 0.5]}
+               for i, s in enumerate(np.linspace(-0.4, 0.4, 6))]
+    path = tmp_path / "one_wall.yaml"
+    path.write_text(yaml.safe_dump({"landmarks": markers}))
+    return dataclasses.replace(CONFIG, landmarks=load_landmark_map(path))
+
+
+def test_a_standing_look_at_a_wall_beyond_the_head_s_yaw_range_turns_the_body_to_it(monkeypatch, tmp_path):
+    """One marked wall behind the robot's left shoulder (2.9 rad), beyond the head's yaw limit (one-wall
+    rooms: no fix for 20 s while the orbit kept the wall behind): the standing look turns the body in
+    place towards it at the head's speed for lookouts, the head TURN_MARGIN inside its limit; once the
+    body has turned, it stands still and the view it looks at predicts a fix."""
+    from station.pilot import TURN_MARGIN
+
+    p = CONFIG.mission
+    pilot, _ = active_pilot(monkeypatch, one_wall(tmp_path, 2.9))
+    pose = pilot.localizer.pose
+    assert pilot.localizer.best_landmark_view(pose, MODEL.camera_in_robot, head_directions(MODEL.head)) is None
+    pilot.handle(Tick(0.2))  # the head on the object (straight ahead)
+    t = 0.1 + p.lookout_stand + 0.2
+    pilot.mission.on_frame(t, True, False, True)  # the object seen, no fix: a standing look
+    look = pilot.handle(Tick(t)).decision
+    assert look.walk[:2] == (0.0, 0.0) and look.walk[2] == MODEL.walk.omega_max, look  # turning left, at full rate
+    assert "turning" in look.reason and look.head_speed == p.lookout_head_speed
+    assert look.head[0] == pytest.approx(MODEL.head.yaw[1] - TURN_MARGIN)
+    heading = pilot._lookout.heading
+    assert heading == pytest.approx(2.9 - (MODEL.head.yaw[1] - TURN_MARGIN), abs=0.15)  # the grid's 0.25 rad step
+
+    odom = (0.0, 0.0, heading)  # the body has turned
+    pilot.handle(FrameReceived(t + 1.0, frame(5, t + 1.0, odom, head=look.head)))
+    pilot.mission.on_frame(t + 1.0, True, False, True)
+    assert pilot.handle(Tick(t + 1.1)).decision.walk == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    assert pilot.localizer.predicted_fix(pilot.localizer.pose, MODEL.camera_in_robot(*look.head))[1] is not None
+
+
+def test_a_body_turn_goes_the_way_that_keeps_the_object_in_the_head_s_range(monkeypatch, tmp_path):
+    """The same wall, the object on the robot's right (-1.7 rad): the left turn the wall needs (0.6-1.1
+    rad) would put the object beyond the head's right limit. With the head on the object, the
+    look turns the body right instead and the head looks at the wall round the other way (yaw below
+    -pi + its half field); with the head away on the left (1.0 rad) that way is out of its reach in
+    time, and the standing look makes no turn."""
+    from station.pilot import TURN_MARGIN
+
+    p = CONFIG.mission
+    target = (START[0] + 0.8 * math.cos(-1.7), START[1] + 0.8 * math.sin(-1.7))
+    for head_yaw, turns in ((None, True), (1.0, False)):
+        pilot, _ = active_pilot(monkeypatch, one_wall(tmp_path, 2.9), target)
+        on_object = pilot.handle(Tick(0.2)).decision.head
+        assert on_object[0] < -1.5  # the head on the object
+        head = on_object if head_yaw is None else MODEL.head.clamp(head_yaw, 0.2)
+        t = 0.1 + p.lookout_stand + 0.2
+        pilot.handle(StateReceived(t, SimpleNamespace(**{**vars(state(t, (0.0, 0.0, 0.0))), "head_yaw": head[0], "head_pitch": head[1]})))
+        pilot.mission.on_frame(t, True, False, True)
+        look = pilot.handle(Tick(t)).decision
+        if turns:
+            assert look.walk == (0.0, 0.0, -MODEL.walk.omega_max) and "turning" in look.reason, look
+            assert look.head[0] == pytest.approx(MODEL.head.yaw[0] + TURN_MARGIN)
+            assert on_object[0] - (pilot._lookout.heading - START[2]) <= MODEL.head.yaw[1]  # the object stays in range
+        else:
+            assert look.walk == (0.0, 0.0, 0.0) and "standing" in look.reason and "turning" not in look.reason, look
+            assert pilot._lookout.heading is None

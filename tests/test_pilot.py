@@ -19,7 +19,7 @@ from agent.ekf import ObjectEKF
 from agent.mission import Outcome, Phase
 from nao_core.geometry import compose, relative, wrap_angle
 from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, encode
-from nao_core.robot_model import load_robot_model
+from nao_core.robot_model import head_at, load_robot_model
 from nao_sim.world import SimWorld
 from station.config import load_station_config
 from station.events import FrameReceived, Replan, StateReceived, Tick
@@ -495,6 +495,7 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     for yaw, pitch in views:
         points, landmarks = pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(yaw, pitch))
         assert points >= p.min_points and landmarks >= p.min_landmarks
+    assert all(d.head_speed == CONFIG.mission.lookout_head_speed for d in ticks)
     over = 0.2 + p.standstill + 0.01  # the standstill is bounded (no landmark fix came at all: it ended sooner)
     assert not pilot._calibration_standstill(over)  # noqa: SLF001
     pilot.mission.on_frame(over, object_seen=True, landmark_fix=True, localized=True)  # still in view
@@ -510,6 +511,27 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     nowhere.ekf.initialize((41.0, 40.0, 0.0), 0.0, 0.1)
     assert not nowhere._calibration_standstill(0.0, start=True) and not nowhere._calibration_standstill(1.0)  # noqa: SLF001
     assert nowhere.standstill.attempts == 0
+
+
+def test_the_standstill_looks_only_where_the_head_gets_and_returns_before_the_object_is_lost():
+    """The object behind the robot's left shoulder (its head target near the yaw limit, one-wall world
+    31: views 4.2 rad away at 1 rad/s, the object unseen 9 s, ``object_lost``): the standstill's views
+    lie within standstill_travel x the look speed of the object's direction, though directions beyond
+    it would show fixes to store; travel there and back and a dwell fit in ``object_lost_timeout``."""
+    p = CONFIG.self_calibration
+    reach = p.standstill_travel * CONFIG.mission.lookout_head_speed * MODEL.head.max_speed
+    assert 2 * p.standstill_travel + p.standstill_dwell < CONFIG.mission.object_lost_timeout
+    pilot = Pilot(CONFIG, INFO)
+    pilot.pose, pilot.anchored = (0.0, 0.0, 0.0), True
+    pilot.ekf.initialize((0.0, 0.0, 2.0), 0.0, 0.1)  # seen from the robot's place, 2 rad to its left
+    on_object = pilot._object_head()  # noqa: SLF001
+    assert on_object[0] > 1.8
+    views = pilot._views_to_calibrate()  # noqa: SLF001
+    assert views and all(head_at(view, on_object, reach) for view in views), (on_object, views)
+    beyond = [d for d in pilot._directions if not head_at(d, on_object, reach)  # noqa: SLF001
+              and min(pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(*d))[0] / p.min_points,
+                      pilot.localizer.visible_landmarks(pilot.pose, MODEL.camera_in_robot(*d))[1] / p.min_landmarks) >= 1]
+    assert beyond  # what the standstill would have looked at
 
 
 def test_after_the_decision_frames_no_longer_change_the_estimate():
