@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: venv test test-slow demo demo-estimation bench matrix stress fuzz clean
+.PHONY: venv test test-slow demo demo-estimation bench matrix stress one-wall fuzz clean
 
 venv: $(STAMP)
 
@@ -51,6 +51,12 @@ matrix: $(STAMP)
 STRESS_COUNT ?= 16
 stress: $(STAMP)
 	$(PY) -m tools.matrix --ranges config/stress.yaml --count $(STRESS_COUNT) --first-seed 300 --out runs/stress --doc docs/benchmarks.md
+
+# The matrix's worlds with their landmarks on one wall only (a drawn layout cut to its most-marked
+# wall), seeds 500 on; to the one_wall section of docs/benchmarks.md.
+ONE_WALL_COUNT ?= 12
+one-wall: $(STAMP)
+	$(PY) -m tools.matrix --one-wall --count $(ONE_WALL_COUNT) --first-seed 500 --out runs/one_wall --doc docs/benchmarks.md
 
 # Long fuzzing budget (the default suite runs a bounded one).
 fuzz: $(STAMP)

@@ -118,6 +118,19 @@ def draw_layout(rng: np.random.Generator, p: DrawnLayoutParams) -> DrawnLayout:
     return DrawnLayout(kind, half, LandmarkMap(tuple(landmarks)))
 
 
+def one_wall(layout: DrawnLayout) -> DrawnLayout:
+    """``layout`` with the landmarks of its most-marked wall alone (of those tied, the first of +x, +y,
+    -x, -y): a user who taped landmarks on one wall (docs/simulator.md, "Drawn layouts")."""
+    def wall(lm: Landmark) -> int:
+        x, y = lm.position[:2]
+        return (0 if x > 0.0 else 2) if abs(x) >= abs(y) else (1 if y > 0.0 else 3)
+
+    kept = max(([lm for lm in layout.landmarks.landmarks if wall(lm) == w] for w in range(4)), key=len)
+    kinds = {lm.kind for lm in kept}
+    kind = "mixed" if len(kinds) > 1 else ("aruco" if kinds == {"aruco"} else "colour")
+    return DrawnLayout(kind, layout.half_size, LandmarkMap(tuple(kept)))
+
+
 def sample_layout(kind: str, p: DrawnLayoutParams) -> DrawnLayout:
     """The first layout of ``kind`` drawn from seeds 0, 1, ...: one fixed room of each kind (tests, benchmarks)."""
     if kind not in KINDS:

@@ -46,7 +46,7 @@ import numpy as np
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import Pose
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
-from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file
+from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file, one_wall
 from nao_sim.scenarios import Room, Scenario, SimConfig, load_sim_config
 from nao_sim.world import SimWorld
 
@@ -145,8 +145,10 @@ def _looks(room: Room, r: Randomizer, rng: np.random.Generator) -> Room:
 
 
 def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optional[SimConfig] = None,
-                 robot: Optional[RobotModel] = None) -> WorldSpec:
-    """Draw world ``seed`` (module docstring); ``robot`` is the configured model (default NAO V6)."""
+                 robot: Optional[RobotModel] = None, one_wall_only: bool = False) -> WorldSpec:
+    """Draw world ``seed`` (module docstring); ``robot`` is the configured model (default NAO V6).
+    ``one_wall_only``: every world's layout is drawn, then cut to its most-marked wall
+    (``layouts.one_wall``); the world is otherwise the same as without it."""
     r = randomizer or load_randomizer()
     base = base or load_sim_config()
     robot = robot or load_robot_model()
@@ -185,9 +187,10 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     sensor = dataclasses.replace(sensor, shutter=float(rng.uniform(*r.shutter)))  # drawn after the rest: their draws stay
     config = dataclasses.replace(config, noise=sensor, room=_looks(config.room, r, rng))
     landmark_path = (CONFIG_DIR / layout.file).resolve()
-    if rng.uniform() < r.drawn_layout.share:  # drawn last: the other worlds' draws stay
+    if rng.uniform() < r.drawn_layout.share or one_wall_only:  # drawn last: the other worlds' draws stay
         drawn = draw_layout(np.random.default_rng([seed, 1]), r.drawn_layout)
-        layout_name, landmark_path = f"drawn {drawn.kind}", layout_file(drawn)
+        drawn = one_wall(drawn) if one_wall_only else drawn
+        layout_name, landmark_path = f"drawn {drawn.kind}{', one wall' if one_wall_only else ''}", layout_file(drawn)
         config = config.with_layout(str(landmark_path), drawn.half_size)
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare)
 

@@ -14,7 +14,7 @@ from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import load_landmark_map
 from nao_sim.layouts import (BALL_COLOURS, COLOURS_USED, DICTIONARY_SIZE, KINDS, WALL_GAP, draw_layout, layout_file,
-                             sample_layout)
+                             one_wall, sample_layout)
 from nao_sim.randomize import load_randomizer, random_world
 
 RANDOMIZER = load_randomizer()
@@ -102,3 +102,23 @@ def test_drawn_layouts_replace_the_layout_of_a_share_of_worlds_and_change_nothin
                                                                    room=plain.config.room))
         assert world == plain, seed
     assert abs(drawn - 40 * P.share) <= 3.0 * math.sqrt(40 * P.share * (1.0 - P.share))  # the configured share
+
+
+def test_a_one_wall_layout_keeps_the_most_marked_wall_alone_and_the_world_is_otherwise_the_same():
+    """``one_wall`` keeps the landmarks of one wall, the wall with the most of them, unchanged; a
+    world drawn with ``one_wall_only`` is the same world (object, start, noise, room) with that map."""
+    for layout in LAYOUTS[:60]:
+        cut = one_wall(layout)
+        counts = collections.Counter(_wall(lm.position, layout.half_size)[0] for lm in layout.landmarks.landmarks)
+        kept = {_wall(lm.position, cut.half_size)[0] for lm in cut.landmarks.landmarks}
+        assert len(kept) == 1 and len(cut.landmarks.landmarks) == max(counts.values())
+        assert set(cut.landmarks.landmarks) <= set(layout.landmarks.landmarks)
+        assert cut.kind == {"aruco": "aruco", "color": "colour"}[cut.landmarks.landmarks[0].kind]
+    for seed in range(6):
+        world, cut = random_world(seed, RANDOMIZER), random_world(seed, RANDOMIZER, one_wall_only=True)
+        assert cut.layout.endswith(", one wall") and cut.layout.split()[1].rstrip(",") in KINDS
+        landmarks = load_landmark_map(cut.landmark_path).landmarks
+        assert len({_wall(lm.position, cut.config.room.half_size)[0] for lm in landmarks}) == 1
+        same = dataclasses.replace(cut, layout=world.layout, landmark_path=world.landmark_path,
+                                   config=dataclasses.replace(cut.config, landmarks=world.config.landmarks, room=world.config.room))
+        assert same == world, seed

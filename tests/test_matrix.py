@@ -211,6 +211,17 @@ def test_a_malformed_ranges_file_is_refused_by_name(tmp_path, capsys):
     assert not (tmp_path / "runs").exists() and not (tmp_path / "doc.md").exists()
 
 
+def test_one_wall_worlds_and_stress_ranges_are_not_mixed(tmp_path, capsys):
+    """``--one-wall`` and ``--ranges`` write different sections: both at once is refused, no mission run."""
+    from tools.matrix import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--one-wall", "--ranges", "config/stress.yaml", "--count", "1", "--out", str(tmp_path / "runs"),
+              "--doc", str(tmp_path / "doc.md")])
+    assert stop.value.code == 2 and "--one-wall and --ranges" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "doc.md").exists()
+
+
 @pytest.mark.parametrize("paint", ["floor_colors", "wall_colors"])
 def test_the_randomized_rooms_are_painted_in_no_colour_the_perception_looks_for(paint):
     """A floor or wall in the object's colour, or a landmark's, is a room the colour segmentation

@@ -39,13 +39,16 @@ Measured against the simulator's truth:
   self-calibration's d_v.
 
     python -m tools.matrix [--count 40] [--first-seed 0] [--resolution vga] [--out runs/matrix]
-                           [--doc docs/benchmarks.md] [--rebuild] [--ranges config/stress.yaml]
+                           [--doc docs/benchmarks.md] [--rebuild] [--ranges config/stress.yaml] [--one-wall]
 
 ``--rebuild`` runs no mission: it rewrites the table from the runs already in ``--out`` (each
 seed's matrix.json, the radius error recomputed from its result.json), e.g. after an interrupted run.
 ``--ranges FILE`` merges FILE's ``randomizer`` section over config/sim.yaml's and writes the table to
 the document's ``stress`` section instead: config/stress.yaml widens every range beyond what the
-matrix promises (docs/benchmarks.md, "Stress worlds"), to find what breaks first.
+matrix promises (docs/benchmarks.md, "Stress worlds"), to find what breaks first. ``--one-wall``
+runs each seed's world with its layout drawn as users lay them out and cut to its most-marked wall
+(``random_world(seed, one_wall_only=True)``; a user who taped landmarks on one wall) and writes the
+``one_wall`` section.
 
 A benchmark, not a test: a few fixed seeds run in the default suite (tests/test_matrix.py).
 """
@@ -432,7 +435,10 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
 
 
 SECTIONS = {"matrix": "Mission matrix: randomized worlds through the NAOqi stand-in",
-            "stress": "Stress worlds: the matrix with its ranges widened (`--ranges`, config/stress.yaml)"}
+            "stress": "Stress worlds: the matrix with its ranges widened (`--ranges`, config/stress.yaml)",
+            "one_wall": "One-wall rooms: the matrix's worlds with landmarks on one wall only (`--one-wall`)"}
+ONE_WALL_NOTE = ("Each world is the matrix's world of the same seed, its layout drawn as users lay them out and cut to its "
+                 "most-marked wall (nao_sim/layouts.py `one_wall`); the layout sentence below is the draw before the cut.\n\n")
 
 
 def write_section(doc: Path, body: str, name: str = "matrix") -> None:
@@ -452,9 +458,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--doc", type=Path, default=Path("docs/benchmarks.md"), help="document whose matrix section is rewritten")
     parser.add_argument("--rebuild", action="store_true", help="no missions: the table from the runs already in --out")
     parser.add_argument("--ranges", type=Path, help="randomizer overrides (e.g. config/stress.yaml): the stress section")
+    parser.add_argument("--one-wall", action="store_true", help="landmarks on the most-marked wall only: the one_wall section")
     args = parser.parse_args(argv)
     if args.count < 1:
         parser.error("--count must be at least 1")
+    if args.one_wall and args.ranges:
+        parser.error("--one-wall and --ranges write different sections: give one of them")
     resolution = args.resolution or load_station_config().station.resolution
     try:
         ranges = load_randomizer([args.ranges] if args.ranges else [])
@@ -465,10 +474,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         if args.rebuild:
             stored = args.out / f"seed{seed:03d}" / "matrix.json"
             if stored.exists():
-                results.append(_stored_result(stored, random_world(seed, ranges), resolution))
+                results.append(_stored_result(stored, random_world(seed, ranges, one_wall_only=args.one_wall), resolution))
             continue
         start = time.monotonic()
-        result = run_mission(seed, args.out / f"seed{seed:03d}", resolution, spec=random_world(seed, ranges))
+        result = run_mission(seed, args.out / f"seed{seed:03d}", resolution, spec=random_world(seed, ranges, one_wall_only=args.one_wall))
         results.append(result)
         (args.out / f"seed{seed:03d}" / "matrix.json").write_text(json.dumps(dataclasses.asdict(result), indent=2) + "\n")
         print(f"matrix: seed {seed} {result.world['layout']}/{result.world['object']}: {result.outcome}, centre "
@@ -476,9 +485,10 @@ def main(argv: Optional[List[str]] = None) -> int:
               f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
-    name = "stress" if args.ranges else "matrix"
-    command = f"`python -m tools.matrix --ranges {args.ranges}`" if args.ranges else MATRIX_COMMAND
-    write_section(args.doc, table(results, resolution, machine, ranges, command), name)
+    name = "stress" if args.ranges else "one_wall" if args.one_wall else "matrix"
+    command = {"stress": f"`python -m tools.matrix --ranges {args.ranges}`", "one_wall": "`python -m tools.matrix --one-wall`",
+               "matrix": MATRIX_COMMAND}[name]
+    write_section(args.doc, (ONE_WALL_NOTE if args.one_wall else "") + table(results, resolution, machine, ranges, command), name)
     print(f"matrix: wrote the {name} section of {args.doc}", file=sys.stderr)
     return 0
 
