@@ -94,6 +94,7 @@ class MissionParams:
     lookout_still: float = field(metadata=bounds(0.0, 60.0))
     lookout_settle: float = field(metadata=bounds(0.0, 30.0))
     lookout_head_speed: float = field(metadata=bounds(0.01, 1.0))
+    localize_turn_after: float = field(metadata=bounds(0.0, 600.0))
     min_image_distance: float = field(metadata=bounds(0.0, 5.0))
     wall_stop: float = field(metadata=bounds(0.0, 5.0))  # m: walking towards a wall of the map stops nearer than this
     relocalize_shift: float = field(metadata=bounds(0.0, 100.0))  # m or rad: a fix moving the pose further rebuilds the object filter
@@ -175,6 +176,10 @@ class Mission:
             self._enter(Phase.ACTIVE, t)
         elif self.phase is Phase.SEARCH and object_seen:
             self._enter(Phase.LOCALIZE, t)
+
+    def in_phase(self, t: float) -> float:
+        """Seconds since the current phase began."""
+        return t - self._t_phase
 
     def since_fix(self, t: float) -> float:
         """Seconds since the last landmark fix (infinite before the first)."""

@@ -65,7 +65,10 @@ current plan's first command (re-sent every tick: the bridge's deadman) and the 
 head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
 (before an estimate, its last sighting: matrix world 23 once first saw its bunny cut by the image's
 side, started no filter and scanned for landmarks until the object was lost) and the next yaw of the
-landmark scan. Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
+landmark scan. After ``localize_turn_after`` s in LOCALIZE the body sweeps in place at
+``search_turn_rate``, reversing whenever the object's head yaw comes within ``TURN_MARGIN`` of a
+yaw limit, the head at ``lookout_head_speed``: the scan then sees every direction round the robot
+(rooms with landmarks on one wall behind the robot's back gave no fix in 30 s, docs/benchmarks.md). Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
 the robot stands until the filter starts).
 Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
 last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (slot = floor(t /
@@ -295,6 +298,7 @@ class Pilot:
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._around = head_directions(replace(self.robot.head, yaw=(-math.pi, math.pi)))  # with the body turned
         self._lookout: Optional[Lookout] = None  # while looking away
+        self._sweep = -1.0  # LOCALIZE: the sign of the body's sweep (module docstring)
         self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
         self._t_back: Optional[float] = None  # when the head was last sent back to the object after a lookout
@@ -367,7 +371,10 @@ class Pilot:
                     f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
                     + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s{turn}" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
-            decision = Decision(decision.phase, walk=decision.walk, head=self._localize_gaze(t))
+            sweep = self._localize_sweep(t)
+            decision = Decision(decision.phase, walk=(0.0, 0.0, sweep) if sweep else decision.walk, head=self._localize_gaze(t),
+                                head_speed=self.config.mission.lookout_head_speed if sweep else None,
+                                reason=f"sweeping for landmarks: no fix in {self.mission.in_phase(t):.0f} s of standing" if sweep else "")
         if decision.walk is not None and not decision.stop:
             decision = replace(decision, walk=self._clear(decision.walk))
         record = DecisionRecord(t, decision.phase.value, decision.walk, decision.head, decision.stop,
@@ -597,6 +604,20 @@ class Pilot:
             return self._object_head()
         yaws = p.search_head_yaws
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
+
+    def _localize_sweep(self, t: float) -> float:
+        """LOCALIZE: the turn rate of the body's sweep (0: stand), after ``localize_turn_after`` s: at
+        ``search_turn_rate``, reversed whenever the object's head yaw comes within ``TURN_MARGIN`` of a
+        yaw limit, so the object stays in the head's range while the head's scan sweeps the room."""
+        p = self.config.mission
+        if self.mission.in_phase(t) < p.localize_turn_after or not self.ekf.initialized:
+            return 0.0
+        yaw, (lo, hi) = self._object_head()[0], self.robot.head.yaw
+        if yaw >= hi - TURN_MARGIN:  # turning left moves the object right in the head's range
+            self._sweep = 1.0
+        elif yaw <= lo + TURN_MARGIN:
+            self._sweep = -1.0
+        return self._sweep * p.search_turn_rate
 
     def _views_to_calibrate(self) -> List[Tuple[float, float]]:
         """Head directions from the current pose predicted to show a fix the self-calibration stores

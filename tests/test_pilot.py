@@ -666,3 +666,33 @@ def test_a_turning_cameras_keyframe_weighs_its_stamp_error():
     turning = pose_quality(np.diag([0.002**2, 0.002**2, 0.002**2 + 0.06**2]), 0.6, sigma_0)
     assert qualities == pytest.approx([still, turning])
     assert turning < 0.1 * still
+
+
+def test_localize_without_a_fix_sweeps_the_body_keeping_the_object_in_the_head_s_range():
+    """LOCALIZE stands for ``localize_turn_after`` s; then, still without a fix, the body sweeps in
+    place (the only landmarks may be on a wall behind the robot, beyond the head's scan), reversing
+    when the object's head yaw nears a yaw limit, the head at the look speed."""
+    from station.pilot import TURN_MARGIN
+
+    p = CONFIG.mission
+    pilot = Pilot(CONFIG, INFO)
+    pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=p.init_pitch)
+    pilot.mission.tick(0.0)
+    pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
+    assert pilot.mission.phase is Phase.LOCALIZE
+    pilot.pose = (0.0, 0.0, 0.0)  # odometry: no fix yet
+    pilot.ekf.initialize((0.0, 0.0, 0.0), 0.0, 0.1)  # the object straight ahead
+    pilot.mission.on_frame(0.1 + p.localize_turn_after - 0.5, object_seen=True, landmark_fix=False, localized=False)
+    early = pilot.handle(Tick(0.1 + p.localize_turn_after - 0.5)).decision
+    assert early.walk == (0.0, 0.0, 0.0) and early.head_speed is None
+    t = 0.1 + p.localize_turn_after + 0.5
+    pilot.mission.on_frame(t, object_seen=True, landmark_fix=False, localized=False)
+    sweep = pilot.handle(Tick(t)).decision
+    assert sweep.walk == (0.0, 0.0, -p.search_turn_rate) and "sweeping" in sweep.reason
+    assert sweep.head_speed == p.lookout_head_speed
+    pilot.pose = (0.0, 0.0, -(MODEL.head.yaw[1] - TURN_MARGIN) - 0.05)  # turned right until the object nears the left limit
+    pilot.mission.on_frame(t + 5.0, object_seen=True, landmark_fix=False, localized=False)
+    assert pilot.handle(Tick(t + 5.0)).decision.walk == (0.0, 0.0, p.search_turn_rate)  # back the other way
+    pilot.pose = (0.0, 0.0, 0.0)
+    pilot.mission.on_frame(t + 6.0, object_seen=True, landmark_fix=False, localized=False)
+    assert pilot.handle(Tick(t + 6.0)).decision.walk == (0.0, 0.0, p.search_turn_rate)  # it keeps going until the right limit
