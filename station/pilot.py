@@ -630,7 +630,7 @@ class Pilot:
         p = self.config.self_calibration
         if self.pose is None or not self.anchored:
             return []
-        reach = p.standstill_travel * self.config.mission.lookout_head_speed * self.robot.head.max_speed
+        reach = p.standstill_travel * self._look_speed
         on_object = self._object_head()
         scored = []
         for yaw, pitch in self._directions:
@@ -724,7 +724,12 @@ class Pilot:
         if head is None or not all(map(math.isfinite, head)):
             return None
         p = self.config.mission
-        return (p.lookout_stand_dwell - p.lookout_still) * p.lookout_head_speed * self.robot.head.max_speed
+        return (p.lookout_stand_dwell - p.lookout_still) * self._look_speed
+
+    @property
+    def _look_speed(self) -> float:
+        """rad/s the head turns at ``mission.lookout_head_speed`` (standing looks, the standstill)."""
+        return self.config.mission.lookout_head_speed * self.robot.head.max_speed
 
     def _gaze_on_object(self, t: float, head: Tuple[float, float]) -> bool:
         """May a frame captured with this head be a keyframe: not looking away, and back on the object since."""
