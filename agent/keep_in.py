@@ -5,13 +5,20 @@ Landmarks are put on the room's walls, or on posts around the place the robot wo
 ``wall_clearance`` m (its body and walking error)::
 
     ArUco marker at p facing n (its horizontal normal):   s(x) = n . (x - p) >= m
-    colour ball at p (no facing):  n = (c - p) / |c - p|,  c the centroid of all the landmarks
+    colour ball at p (no facing):  n = (o - p) / |o - p|,  o the object estimate
 
-and the walkable floor is their intersection, convex as a room seen from inside. Balls along one
-wall give half-planes slanted towards the centroid; together they approximate the wall (in a
-4 x 4 m room of balls every 0.6 m, at most 5 cm beyond it and 20 cm inside it beside a ball:
-tests/test_keep_in.py). A half-plane that does not hold the object
-estimate o (n . (o - p) < r: a marker on a box in the room, facing out, is no wall) is left out.
+and the walkable floor is their intersection, convex as a room seen from inside. A ball's wall faces
+where the robot works: its half-plane is tangent to the circle through it round the object, so the
+disc |x - o| <= |p - o| - m is always walkable, whatever walls the balls are on. Balls along one wall
+give half-planes slanted towards the object; together they approximate the wall (in a 4 x 4 m room
+of balls every 0.6 m, the object in the middle, at most 5 cm beyond it and 20 cm inside it beside a
+ball: tests/test_keep_in.py). Facing the balls' centroid instead, as before, balls on one wall only
+faced along it and cut the room into a band 0.5 m wide round the object: the planner fled it with
+the object behind the robot (one-wall colour worlds 502 and 503, ``object_lost``). Without an object
+(:meth:`KeepIn.distances` without walls: the localizer's check that a cold hypothesis stands inside
+the floor the balls enclose) a ball faces the balls' centroid, and balls on one line enclose none.
+A half-plane that does not hold the object estimate o (n . (o - p) < r: a marker on a box in the
+room, facing out, is no wall) is left out.
 
 The planner's cost (agent/planner.py) adds the hard term
 
@@ -37,7 +44,8 @@ completes with the views the room allows instead of walking its time limit out.
 
 from __future__ import annotations
 
-from typing import Optional
+import math
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -45,42 +53,64 @@ from agent.coverage import CoverageParams, bin_angles
 from nao_core.landmark_map import LandmarkMap
 
 REACH = 1.0  # m beyond the object clearance searched for a camera position that sees a bin
+COLLINEAR = 0.05  # m: balls whose positions spread less than this across their main line lie on one line (enclose no floor)
+
+
+class HalfPlanes(NamedTuple):
+    """Half-planes n_j . x >= d_j of the floor: unit normals (J, 2) and offsets d_j (J,)."""
+
+    normals: np.ndarray
+    offsets: np.ndarray
 
 
 class KeepIn:
-    """Half-planes n_j . x >= n_j . p_j of the floor, from a landmark map."""
+    """The floor's half-planes from a landmark map: each ArUco marker's, and each ball's facing a point."""
 
     def __init__(self, landmark_map: LandmarkMap):
-        points = np.array([lm.position[:2] for lm in landmark_map.landmarks], float).reshape(-1, 2)
-        centroid = points.mean(axis=0) if len(points) else np.zeros(2)
-        normals, anchors = [], []
-        for lm, p in zip(landmark_map.landmarks, points):
-            n = lm.normal[:2] if lm.kind == "aruco" else centroid - p  # an ArUco normal is horizontal (yaw)
-            length = float(np.linalg.norm(n))
-            if length < 1e-6:  # a ball at the centroid faces no way
-                continue
-            normals.append(n / length)
-            anchors.append(p)
-        self.normals = np.array(normals, float).reshape(-1, 2)
-        self.offsets = np.einsum("ij,ij->i", self.normals, np.array(anchors, float).reshape(-1, 2))
+        markers = [lm for lm in landmark_map.landmarks if lm.kind == "aruco"]
+        normals = np.array([lm.normal[:2] / np.linalg.norm(lm.normal[:2]) for lm in markers], float).reshape(-1, 2)
+        anchors = np.array([lm.position[:2] for lm in markers], float).reshape(-1, 2)
+        self._markers = HalfPlanes(normals, np.einsum("ij,ij->i", normals, anchors))  # an ArUco normal is horizontal (yaw)
+        self._balls = np.array([lm.position[:2] for lm in landmark_map.landmarks if lm.kind == "color"], float).reshape(-1, 2)
 
-    def walls(self, x: np.ndarray) -> np.ndarray:
-        """Mask of the half-planes holding the object estimate x = (xo, yo, r): the room's walls."""
-        return self.normals @ np.asarray(x[:2], float) - self.offsets >= float(x[2])
+    def _facing(self, point: np.ndarray) -> HalfPlanes:
+        """The markers' half-planes and the balls' facing ``point`` (a ball at the point faces no way)."""
+        towards = np.asarray(point, float) - self._balls
+        length = np.hypot(towards[:, 0], towards[:, 1])
+        keep = length >= 1e-6
+        normals = towards[keep] / length[keep, None]
+        return HalfPlanes(np.concatenate([self._markers.normals, normals]),
+                          np.concatenate([self._markers.offsets, np.einsum("ij,ij->i", normals, self._balls[keep])]))
 
-    def distances(self, positions: np.ndarray, walls: Optional[np.ndarray] = None) -> np.ndarray:
-        """Signed distances s_j (..., J) of positions (..., 2) in front of the half-planes (masked by ``walls``)."""
-        normals, offsets = (self.normals, self.offsets) if walls is None else (self.normals[walls], self.offsets[walls])
-        return positions @ normals.T - offsets
+    def walls(self, x: np.ndarray) -> HalfPlanes:
+        """The room's walls for the object estimate x = (xo, yo, r): the half-planes (balls facing the
+        object) that hold it."""
+        planes = self._facing(np.asarray(x[:2], float))
+        holds = planes.normals @ np.asarray(x[:2], float) - planes.offsets >= float(x[2])
+        return HalfPlanes(planes.normals[holds], planes.offsets[holds])
+
+    def distances(self, positions: np.ndarray, walls: Optional[HalfPlanes] = None) -> np.ndarray:
+        """Signed distances s_j (..., J) of positions (..., 2) in front of ``walls``; without them, of the
+        markers' half-planes and the balls' facing their centroid (none when the balls lie on one line)."""
+        if walls is None:
+            walls = self._markers if _collinear(self._balls) else self._facing(self._balls.mean(axis=0))
+        return positions @ walls.normals.T - walls.offsets
 
     def nearest(self, position: np.ndarray, x: np.ndarray) -> Optional[np.ndarray]:
         """(distance, normal x, normal y) of the nearest wall of the object estimate x to a position, or None."""
         walls = self.walls(x)
-        if not walls.any():
+        if not len(walls.offsets):
             return None
         distances = self.distances(np.asarray(position[:2], float), walls)
         j = int(np.argmin(distances))
-        return np.array([distances[j], *self.normals[walls][j]])
+        return np.array([distances[j], *walls.normals[j]])
+
+
+def _collinear(points: np.ndarray) -> bool:
+    """Do the points (N, 2) lie on one line (or are fewer than three), so that they enclose no floor?"""
+    if len(points) < 3:
+        return True
+    return bool(np.linalg.svd(points - points.mean(axis=0), compute_uv=False)[1] / math.sqrt(len(points)) < COLLINEAR)
 
 
 def reachable_bins(keep_in: KeepIn, x: np.ndarray, params: CoverageParams, clearance: float, wall_clearance: float,

@@ -36,7 +36,7 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 
 from agent.camera import CameraModel
-from agent.keep_in import KeepIn
+from agent.keep_in import HalfPlanes, KeepIn
 from agent.localization import RobotLocalizer, head_directions
 from agent.planner import Planner
 from nao_core.config import ConfigError
@@ -161,7 +161,7 @@ def _cm(value: float) -> str:
 
 
 def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: Sequence[OrbitPoint], limit: float,
-         keep_in: KeepIn, walls: np.ndarray, wall_clearance: float) -> None:
+         keep_in: KeepIn, walls: HalfPlanes, wall_clearance: float) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,7 +178,7 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
             top.plot(x, y, "o", color=lm.color if lm.color in ("green", "yellow", "magenta", "cyan", "blue") else "0.5",
                      mec="k", ms=7)
     top.plot(*obj, "s", color="tab:red", ms=9, label="object")
-    if walls.any():
+    if len(walls.offsets):
         lo, hi = top.get_xlim(), top.get_ylim()
         gx, gy = np.meshgrid(np.linspace(*lo, 300), np.linspace(*hi, 300))
         nearest = np.min(keep_in.distances(np.stack([gx, gy], axis=-1), walls), axis=-1)
@@ -241,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
     keep_in, x = KeepIn(landmarks), np.array([*args.object, args.radius])
     walls = keep_in.walls(x)
     reachable = Planner.for_robot(config.planner, robot, resolution).reachable_bins(x, keep_in)
-    print(f"walls: {int(walls.sum())} landmark planes; keeping "
+    print(f"walls: {len(walls.offsets)} landmark planes; keeping "
           f"{config.planner.wall_clearance:g} m off them and {config.planner.clearance:g} m off the object, the robot can see "
           f"{int(reachable.sum())} of the object's {reachable.size} coverage bins"
           + ("" if reachable.all() else ": it is too near a wall to be seen from all round (docs/landmarks.md)"))

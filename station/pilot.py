@@ -91,9 +91,12 @@ head reaches predicts a fix, a standing look searches every direction round the 
 reaches by turning the other way or once the body has turned: body yaw y (taken as y or y +- 2 pi,
 whichever is nearer the head, within the reach) is looked at by turning the body in place by
 tau = y - clip(y, lo + ``TURN_MARGIN``, hi - ``TURN_MARGIN``), omega = clip((heading goal - theta) /
-``TURN_TIME``, +-omega_max) while the look lasts, the head at y - tau, unless the object's yaw minus
+``TURN_TIME``, +-omega_max), the head at y - tau, unless the object's yaw minus
 tau leaves the head's range [lo, hi] (one-wall rooms: the orbit kept the wall behind the robot's
-shoulder, or 4 rad round the head from the object at its yaw limit, for 20 s). A standing look that gave
+shoulder, or 4 rad round the head from the object at its yaw limit, for 20 s). The turn goes on
+through the object's dwell, the head on the object, until the heading is within ``TURN_DONE`` of its
+goal or a fix comes: a 2.2 rad turn takes longer than a dwell at omega_max, and the planner's walk in
+between turned the body back (one-wall worlds 504 and 506, ``landmarks_lost``). A standing look that gave
 no fix rules out the directions within ``FRUITLESS_RADIUS`` of it until the next fix (the
 prediction was wrong there: the view of matrix world 0 chosen three times in a row gave none). No
 keyframe is taken while
@@ -185,6 +188,7 @@ MEASURED_RADIUS = 0.5  # the radius std below this share of its prior: widths we
 FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
 TURN_MARGIN = 0.3  # rad inside the head's yaw limit where a body turn brings a look beyond it
 TURN_TIME = 0.5  # s: a standing look's body turn closes its heading error at omega = error / TURN_TIME (at most omega_max)
+TURN_DONE = 0.05  # rad: a standing look's body turn that got this near its heading is done
 
 
 @dataclass(frozen=True)
@@ -298,6 +302,7 @@ class Pilot:
         self._directions = head_directions(self.robot.head)  # head grid the landmark lookout searches
         self._around = head_directions(replace(self.robot.head, yaw=(-math.pi, math.pi)))  # with the body turned
         self._lookout: Optional[Lookout] = None  # while looking away
+        self._turn_goal: Optional[float] = None  # heading a standing look's body turn goes on to through the object's dwell
         self._sweep = -1.0  # LOCALIZE: the sign of the body's sweep (module docstring)
         self._fruitless: List[Tuple[float, float]] = []  # head targets of standing looks without a fix, this drought
         self._object_gaze: Optional[Tuple[float, float]] = None  # last head target on the object
@@ -361,12 +366,18 @@ class Pilot:
                     head = self.robot.head.clamp(head[0], self._base_pitch)
                 self._object_gaze = head
                 facing = "facing the object: its base is below the head's reach at this yaw" if self._facing_turn else ""
-                walk = (0.0, 0.0, self._facing_turn) if self._facing_turn else self.command
+                if self._facing_turn:
+                    walk = (0.0, 0.0, self._facing_turn)
+                elif standing and self._turn_pending() is not None:
+                    facing = f"turning to {self._turn_goal:.2f} rad for the next landmark look"
+                    walk = self._turn_walk(self._turn_goal)
+                else:
+                    walk = self.command
                 decision = Decision(decision.phase, walk=walk, head=head, head_speed=speed, reason=facing)
             else:
                 p = self.config.mission
                 turn = "" if look.heading is None else f", turning to {look.heading:.2f} rad"
-                decision = Decision(decision.phase, walk=self._look_walk(look) if standing else self.command, head=look.head,
+                decision = Decision(decision.phase, walk=self._turn_walk(look.heading) if standing else self.command, head=look.head,
                                     head_speed=speed, reason=(
                     f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
                     + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s{turn}" if standing else "")))
@@ -675,6 +686,7 @@ class Pilot:
         uncertain = self.localizer.position_std() > p.lookout_std or drought > 0.0  # a drought ends the mission in the end
         if drought <= 0.0:
             self._fruitless.clear()
+            self._turn_goal = None
         if pose is None or not uncertain or not looking:
             if self._lookout is not None:
                 if self._lookout.slot[0] and self._lookout.heading is None and drought > 0.0:  # a still look without a fix
@@ -691,6 +703,7 @@ class Pilot:
             if reach is not None:
                 scan = min(max(scan, head[0] - reach), head[0] + reach)
             self._lookout = turned or Lookout(slot, self.robot.head.clamp(*((view.yaw, view.pitch) if view else (scan, p.init_pitch))))
+            self._turn_goal = self._lookout.heading
         return self._lookout
 
     def _turned_look(self, slot: Tuple[bool, int], pose: Pose, head: Tuple[float, float], reach: float) -> Optional[Lookout]:
@@ -711,12 +724,19 @@ class Pilot:
             return None
         return Lookout(slot, self.robot.head.clamp(view.yaw - turn(view.yaw), view.pitch), wrap_angle(pose[2] + turn(view.yaw)))
 
-    def _look_walk(self, look: Lookout) -> Tuple[float, float, float]:
+    def _turn_walk(self, heading: Optional[float]) -> Tuple[float, float, float]:
         """A standing look's walk: still, or the turn in place towards its heading (module docstring)."""
-        if look.heading is None or self.pose is None:
+        if heading is None or self.pose is None:
             return (0.0, 0.0, 0.0)
         omega_max = self.robot.walk.omega_max
-        return (0.0, 0.0, min(max(wrap_angle(look.heading - self.pose[2]) / TURN_TIME, -omega_max), omega_max))
+        return (0.0, 0.0, min(max(wrap_angle(heading - self.pose[2]) / TURN_TIME, -omega_max), omega_max))
+
+    def _turn_pending(self) -> Optional[float]:
+        """The heading a standing look's body turn still goes on to in the object's dwell, or None
+        (none, or reached within ``TURN_DONE``)."""
+        if self._turn_goal is not None and self.pose is not None and abs(wrap_angle(self._turn_goal - self.pose[2])) < TURN_DONE:
+            self._turn_goal = None
+        return self._turn_goal
 
     def _look_reach(self) -> Optional[float]:
         """rad a standing look may turn the head from where it is (module docstring), or None (head angles unknown)."""

@@ -250,6 +250,34 @@ def test_a_standing_look_at_a_wall_beyond_the_head_s_yaw_range_turns_the_body_to
     assert pilot.localizer.predicted_fix(pilot.localizer.pose, MODEL.camera_in_robot(*look.head))[1] is not None
 
 
+def test_a_standing_look_s_body_turn_goes_on_through_the_object_s_dwell_until_its_heading(monkeypatch, tmp_path):
+    """The turn to the wall behind the shoulder (2.9 rad) outlasts a look's dwell at omega_max. In the
+    object's dwell that follows, the body turns on towards the look's heading, the head on the object,
+    instead of walking the plan (which turned it back: one-wall worlds 504 and 506 ended
+    ``landmarks_lost``); once the heading is reached the plan's walk comes back."""
+    p = CONFIG.mission
+    pilot, _ = active_pilot(monkeypatch, one_wall(tmp_path, 2.9))
+    pilot.command = (0.08, 0.0, -0.5)  # the plan turns the other way
+    pilot.handle(Tick(0.2))
+    t = 0.1 + p.lookout_stand + 0.2
+    pilot.mission.on_frame(t, True, False, True)
+    look = pilot.handle(Tick(t)).decision
+    heading = pilot._lookout.heading
+    assert heading > 0.5 and look.walk[2] > 0.0
+
+    def object_dwell(at: float, body: float):
+        pilot.handle(FrameReceived(at, frame(int(at * 10), at, (0.0, 0.0, body), head=look.head)))
+        pilot.mission.on_frame(at, True, False, True)
+        return pilot.handle(Tick(at)).decision
+
+    half = object_dwell(t + p.lookout_stand_dwell + 0.2, heading / 2.0)  # the body half way round
+    assert pilot._lookout is None  # the object's dwell
+    assert half.walk[:2] == (0.0, 0.0) and half.walk[2] == MODEL.walk.omega_max and "turning to" in half.reason, half
+    assert half.head[0] == pytest.approx(-heading / 2.0, abs=0.15)  # the head on the object, straight ahead of START
+    done = object_dwell(t + p.lookout_stand_dwell + 0.8, heading)
+    assert done.walk == pilot.command and "turning" not in done.reason, done
+
+
 def test_a_body_turn_goes_the_way_that_keeps_the_object_in_the_head_s_range(monkeypatch, tmp_path):
     """The same wall, the object on the robot's right (-1.7 rad): the left turn the wall needs (0.6-1.1
     rad) would put the object beyond the head's right limit. With the head on the object, the

@@ -7,6 +7,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from agent.ekf import load_ekf_params
 from agent.keep_in import KeepIn
@@ -61,13 +62,33 @@ def test_balls_on_walls_approximate_the_room_and_never_cut_its_middle():
     assert np.all(np.min(keep_in.distances(beyond), axis=-1) < 0.0)
 
 
+def test_balls_on_one_wall_face_the_object_and_leave_the_orbit_free():
+    """Twelve balls on one wall x = 2.26 (a user's one-wall colour room, matrix one-wall worlds 502 and
+    503): facing their centroid, on the wall, they faced along it and cut the floor to a band round
+    the object, so the planner fled the orbit. Facing the object, its orbit is walkable and the wall
+    is kept: the nearest plane to a point in front of the wall is the wall, within 2 cm, and a point
+    beyond it is outside. Without the object, balls on one line enclose no floor."""
+    balls = tuple(Landmark(id=f"green-{i}", kind="color", color="green", diameter=0.11, position=(2.26, y, 0.4))
+                  for i, y in enumerate(np.linspace(-2.0, 2.0, 12)))
+    keep_in = KeepIn(LandmarkMap(balls))
+    x = np.array([0.0, 0.0, 0.05])
+    walls = keep_in.walls(x)
+    a = np.linspace(-math.pi, math.pi, 72)
+    orbit = 1.2 * np.stack([np.cos(a), np.sin(a)], axis=-1)
+    assert np.all(keep_in.distances(orbit, walls) >= PARAMS.wall_clearance)
+    nearest = keep_in.nearest(np.array([1.8, 0.1]), x)
+    assert nearest[0] == pytest.approx(0.46, abs=0.02) and nearest[1] == pytest.approx(-1.0, abs=0.05)
+    assert np.min(keep_in.distances(np.array([2.4, 0.1]), walls)) < 0.0
+    assert keep_in.distances(orbit).shape == (len(orbit), 0)
+
+
 def test_a_half_plane_without_the_object_is_no_wall():
     """A marker on a box in the room, facing away from the object, is not a wall of this room."""
     room = markers_on_walls(1.5)
     box = Landmark(id=40, kind="aruco", dictionary="DICT_4X4_50", size=0.1, position=(0.6, 0.0, 0.2), yaw=0.0)
     keep_in = KeepIn(LandmarkMap(room.landmarks + (box,)))
     walls = keep_in.walls(np.array([0.0, 0.0, 0.05]))
-    assert walls.sum() == len(room.landmarks) and not walls[-1]
+    assert len(walls.offsets) == len(room.landmarks) and not np.any(np.isclose(walls.offsets, 0.6))  # the box's n . p
     nearest = keep_in.nearest(np.array([0.2, 1.4, 0.0]), np.array([0.0, 0.0, 0.05]))
     np.testing.assert_allclose(nearest, [0.1, 0.0, -1.0], atol=1e-12)  # the wall y = 1.5, facing -y
 
