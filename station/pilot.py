@@ -62,12 +62,18 @@ it has settled; the head at ``mission.lookout_head_speed``), until an estimate i
 views stored nothing; tried again ``standstill_interval`` s later while no estimate is applied,
 ``standstill_attempts`` in all (no keyframes meanwhile). Then in ACTIVE the walk command is the
 current plan's first command (re-sent every tick: the bridge's deadman) and the head follows the
-head servo's target; in LOCALIZE the head alternates, one ``gaze_dwell`` each, between the object
-(before an estimate, its last sighting: matrix world 23 once first saw its bunny cut by the image's
-side, started no filter and scanned for landmarks until the object was lost) and the next yaw of the
-landmark scan. After ``localize_turn_after`` s in LOCALIZE the body sweeps in place at
+head servo's target; in LOCALIZE the robot stands and its looks are standing looks: the head
+alternates, ``lookout_stand_dwell`` each at ``lookout_head_speed``, between the object (before an
+estimate, its last sighting: matrix world 23 once first saw its bunny cut by the image's side,
+started no filter and scanned for landmarks until the object was lost) and the next yaw of the
+landmark scan more than half the field of view from the object (a one-second dwell at 1 rad/s
+never got the head to a scan yaw 1.8 rad from the object: one-wall world 506 saw its wall only at
+the head's yaw 1.4). After ``localize_turn_after`` s in LOCALIZE the body sweeps in place at
 ``search_turn_rate``, reversing whenever the object's head yaw comes within ``TURN_MARGIN`` of a
-yaw limit, the head at ``lookout_head_speed``: the scan then sees every direction round the robot
+yaw limit, its looks at the scan's last yaw in the turn's direction: a look at a fixed yaw of the
+turning body sweeps the room, and the object's dwells between miss less than a field of view of it
+(2.5 s at 0.35 rad/s) (one-wall world 508: the scan's yaws in turn never met the wall behind the robot's shoulder). The
+looks then see every direction round the robot
 (rooms with landmarks on one wall behind the robot's back gave no fix in 30 s, docs/benchmarks.md). Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
 the robot stands until the filter starts).
 Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
@@ -383,8 +389,8 @@ class Pilot:
                     + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s{turn}" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
             sweep = self._localize_sweep(t)
-            decision = Decision(decision.phase, walk=(0.0, 0.0, sweep) if sweep else decision.walk, head=self._localize_gaze(t),
-                                head_speed=self.config.mission.lookout_head_speed if sweep else None,
+            decision = Decision(decision.phase, walk=(0.0, 0.0, sweep) if sweep else decision.walk, head=self._localize_gaze(t, sweep),
+                                head_speed=self.config.mission.lookout_head_speed,
                                 reason=f"sweeping for landmarks: no fix in {self.mission.in_phase(t):.0f} s of standing" if sweep else "")
         if decision.walk is not None and not decision.stop:
             decision = replace(decision, walk=self._clear(decision.walk))
@@ -606,14 +612,20 @@ class Pilot:
         centroid, head_at_capture = self._servo_sighting()
         return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
 
-    def _localize_gaze(self, t: float) -> Tuple[float, float]:
-        """LOCALIZE: even dwells on the object (its estimate, or before one its last sighting: a
-        silhouette cut by a side border starts no filter), odd ones on the next yaw of the landmark scan."""
+    def _localize_gaze(self, t: float, sweep: float) -> Tuple[float, float]:
+        """LOCALIZE: standing looks (module docstring), even ``lookout_stand_dwell`` s on the object (its
+        estimate, or before one its last sighting: a silhouette cut by a side border starts no filter),
+        odd ones on the next yaw of the landmark scan more than half the field of view from it; while
+        the body sweeps (turn rate ``sweep``), on the scan's last yaw in the turn's direction."""
         p = self.config.mission
-        slot = int(t // p.gaze_dwell)
-        if slot % 2 == 0 and (self.ekf.initialized or self._last_sighting is not None):
-            return self._object_head()
-        yaws = p.search_head_yaws
+        slot = int(t // p.lookout_stand_dwell)
+        on_object = self._object_head() if self.ekf.initialized or self._last_sighting is not None else None
+        if slot % 2 == 0 and on_object is not None:
+            return on_object
+        if sweep:
+            return self.robot.head.clamp((max if sweep > 0.0 else min)(p.search_head_yaws), p.init_pitch)
+        yaws = [y for y in p.search_head_yaws if on_object is None or abs(y - on_object[0]) > 0.5 * self.camera.hfov]
+        yaws = yaws or list(p.search_head_yaws)
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 
     def _localize_sweep(self, t: float) -> float:

@@ -425,15 +425,16 @@ def test_an_object_first_seen_cut_by_a_side_border_is_looked_back_at(localized):
         assert pilot.mission.phase is Phase.ACTIVE
     blank = jpeg(np.full((H, W, 3), 128, np.uint8))
     pilot.handle(FrameReceived(0.3, frame(2, blank, stamp=0.3)))  # unseen since
-    dwell = CONFIG.mission.gaze_dwell
-    on_object = pilot.handle(Tick(2.0 * dwell + 0.1)).decision.head
-    other = pilot.handle(Tick(3.0 * dwell + 0.1)).decision.head
+    dwell = CONFIG.mission.lookout_stand_dwell  # LOCALIZE's standing looks; ACTIVE's lookouts wait for an estimate
+    on_object = pilot.handle(Tick(dwell - 0.2)).decision.head
+    other = pilot.handle(Tick(dwell + 0.2)).decision.head
     half_fov = math.atan2(W / 2.0, INFO.intrinsics.fx)
     assert 0.8 * half_fov < on_object[0] < 1.2 * half_fov  # towards the left border, where the disc was cut
     if localized:
         assert other == on_object
-    else:
-        assert other[0] == MODEL.head.clamp(CONFIG.mission.search_head_yaws[1], CONFIG.mission.init_pitch)[0]
+    else:  # the scan's first yaw the object's look does not already see
+        scan = next(y for y in CONFIG.mission.search_head_yaws if abs(y - on_object[0]) > half_fov)
+        assert other[0] == MODEL.head.clamp(scan, CONFIG.mission.init_pitch)[0] and abs(other[0] - on_object[0]) > 0.8
 
 
 def test_a_floor_of_the_objects_colour_is_no_sighting_and_is_counted():
@@ -684,15 +685,25 @@ def test_localize_without_a_fix_sweeps_the_body_keeping_the_object_in_the_head_s
     pilot.ekf.initialize((0.0, 0.0, 0.0), 0.0, 0.1)  # the object straight ahead
     pilot.mission.on_frame(0.1 + p.localize_turn_after - 0.5, object_seen=True, landmark_fix=False, localized=False)
     early = pilot.handle(Tick(0.1 + p.localize_turn_after - 0.5)).decision
-    assert early.walk == (0.0, 0.0, 0.0) and early.head_speed is None
+    assert early.walk == (0.0, 0.0, 0.0) and early.head_speed == p.lookout_head_speed  # standing looks
     t = 0.1 + p.localize_turn_after + 0.5
     pilot.mission.on_frame(t, object_seen=True, landmark_fix=False, localized=False)
     sweep = pilot.handle(Tick(t)).decision
     assert sweep.walk == (0.0, 0.0, -p.search_turn_rate) and "sweeping" in sweep.reason
     assert sweep.head_speed == p.lookout_head_speed
+
+    def look(at: float):  # a tick in a look's dwell (odd slots of lookout_stand_dwell)
+        at = (2 * math.floor(at / p.lookout_stand_dwell / 2) + 1.5) * p.lookout_stand_dwell
+        pilot.mission.on_frame(at, object_seen=True, landmark_fix=False, localized=False)
+        return at, pilot.handle(Tick(at)).decision
+
+    t, leading = look(t)  # the look leads the turn at a fixed yaw: the turning body sweeps it round the room
+    assert leading.walk == sweep.walk and leading.head[0] == MODEL.head.clamp(min(p.search_head_yaws), p.init_pitch)[0]
     pilot.pose = (0.0, 0.0, -(MODEL.head.yaw[1] - TURN_MARGIN) - 0.05)  # turned right until the object nears the left limit
     pilot.mission.on_frame(t + 5.0, object_seen=True, landmark_fix=False, localized=False)
     assert pilot.handle(Tick(t + 5.0)).decision.walk == (0.0, 0.0, p.search_turn_rate)  # back the other way
+    t, leading = look(t + 5.0)
+    assert leading.walk[2] > 0.0 and leading.head[0] == MODEL.head.clamp(max(p.search_head_yaws), p.init_pitch)[0]
     pilot.pose = (0.0, 0.0, 0.0)
     pilot.mission.on_frame(t + 6.0, object_seen=True, landmark_fix=False, localized=False)
     assert pilot.handle(Tick(t + 6.0)).decision.walk == (0.0, 0.0, p.search_turn_rate)  # it keeps going until the right limit
