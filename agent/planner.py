@@ -13,9 +13,11 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
     c_l  uncertainty   "relative": det(P_{t+D})^(1/3) / r^2   (geometric-mean variance over r^2:
                        dimensionless, so one weight serves a 5 cm can and a 50 cm box)
                        "paper":    det(P_{t+D})
-    c_v  view          "reachable": e^2, e = excess of the bearing b = wrap(atan2(o - p) - theta) beyond
-                       the reachable field of view [yaw_min - hfov/2, yaw_max + hfov/2] (0 inside)
-                       "paper":    b^2 (the paper's theta_o read as the robot heading)
+    c_v  view          "reachable": sum over the horizon of e_k^2, e_k = excess of the bearing
+                       b_k = wrap(atan2(o - p_k) - theta_k) beyond the reachable field of view
+                       [yaw_min - hfov/2, yaw_max + hfov/2] (0 inside): at t + D alone, a plan could
+                       turn the robot round through the object behind its back (one-wall world 502)
+                       "paper":    b^2 at t + D (the paper's theta_o read as the robot heading)
     c_r  coverage      "corrected": 1 - N_v / N_0;   "paper": N_v / N_0 (minimizing it avoids coverage)
                        N_v: bins seen over the executed path and the horizon (:mod:`agent.coverage`)
     c_d  distance      "standoff": ((d - d_min) / d_min)^2;   "paper": d_min / d,   d = |o - p_{t+D}|
@@ -171,11 +173,12 @@ def uncertainty_cost(P: np.ndarray, radius: float, form: str = "relative") -> np
 
 
 def view_cost(bearing: np.ndarray, reach: Tuple[float, float], form: str = "reachable") -> np.ndarray:
-    """c_v of the object's bearing from the robot heading: b^2 ("paper") or the squared excess beyond reach."""
+    """c_v of the object's bearings (..., D) from the robot heading over the horizon: b_D^2 ("paper") or
+    the sum of the squared excesses beyond reach."""
     if form == "paper":
-        return np.square(bearing)
+        return np.square(bearing[..., -1])
     excess = np.maximum(bearing - reach[1], 0.0) + np.maximum(reach[0] - bearing, 0.0)
-    return np.square(excess)
+    return np.sum(np.square(excess), axis=-1)
 
 
 def coverage_cost(n_seen: np.ndarray, n_bins: int, form: str = "corrected") -> np.ndarray:
@@ -351,7 +354,7 @@ class Planner:
             visible = object_in_view(x, cams, self.hfov, p.max_range)
             P_end = rollout_covariance(x, P, cams, visible, self._Q_step, R=self._R)
             dist = np.hypot(target[0] - poses[..., 0], target[1] - poses[..., 1])  # (K, D)
-            bearing = wrap_angle(np.arctan2(target[1] - poses[:, -1, 1], target[0] - poses[:, -1, 0]) - poses[:, -1, 2])
+            bearing = wrap_angle(np.arctan2(target[1] - poses[..., 1], target[0] - poses[..., 0]) - poses[..., 2])  # (K, D)
             n_seen = seen_count(x, cams, seen, p.coverage, self.hfov)
             terms = {
                 "uncertainty": w.uncertainty * uncertainty_cost(P_end, x[2], p.uncertainty_form),

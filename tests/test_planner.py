@@ -84,9 +84,14 @@ def test_uncertainty_cost_relative_and_paper():
 
 
 def test_view_cost_paper_and_reachable():
+    """The paper's form is the end's bearing squared; the reachable form sums the squared excesses over
+    the horizon, so a turn that passes the object behind the robot's back costs even when it ends
+    with the object in reach (one-wall world 502)."""
     reach = (-2.58, 2.58)
-    assert view_cost(np.array(0.5), reach, "paper") == pytest.approx(0.25)
-    np.testing.assert_allclose(view_cost(np.array([2.5, -2.5, 3.0, -3.1]), reach, "reachable"), [0, 0, 0.42**2, 0.52**2])
+    assert view_cost(np.array([3.0, 0.5]), reach, "paper") == pytest.approx(0.25)
+    np.testing.assert_allclose(view_cost(np.array([[2.5], [-2.5], [3.0], [-3.1]]), reach, "reachable"), [0, 0, 0.42**2, 0.52**2])
+    through_the_back = np.array([1.5, 2.5, 3.0, -3.1, -2.0])
+    assert view_cost(through_the_back, reach, "reachable") == pytest.approx(0.42**2 + 0.52**2)
 
 
 def test_coverage_cost_corrected_and_paper():
