@@ -72,9 +72,8 @@ the head's yaw 1.4). After ``localize_turn_after`` s in LOCALIZE the body sweeps
 ``search_turn_rate``, reversing whenever the object's head yaw comes within ``TURN_MARGIN`` of a
 yaw limit, its looks at the scan's last yaw in the turn's direction: a look at a fixed yaw of the
 turning body sweeps the room, and the object's dwells between miss less than a field of view of it
-(2.5 s at 0.35 rad/s) (one-wall world 508: the scan's yaws in turn never met the wall behind the robot's shoulder). The
-looks then see every direction round the robot
-(rooms with landmarks on one wall behind the robot's back gave no fix in 30 s, docs/benchmarks.md). Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
+(2.5 s at 0.35 rad/s; one-wall world 508: the scan's yaws in turn never met the wall behind the
+robot's shoulder). The looks then see every direction round the robot (rooms with landmarks on one wall behind the robot's back gave no fix in 30 s, docs/benchmarks.md). Before an estimate exists the head servo centres the last sighting (in ACTIVE too:
 the robot stands until the filter starts).
 Active localization (ACTIVE): while the localizer's position std sigma_p (dead reckoning since the
 last fix, agent/localization.py) exceeds ``mission.lookout_std``, odd dwells (slot = floor(t /
