@@ -72,6 +72,8 @@ class KeepIn:
         anchors = np.array([lm.position[:2] for lm in markers], float).reshape(-1, 2)
         self._markers = HalfPlanes(normals, np.einsum("ij,ij->i", normals, anchors))  # an ArUco normal is horizontal (yaw)
         self._balls = np.array([lm.position[:2] for lm in landmark_map.landmarks if lm.kind == "color"], float).reshape(-1, 2)
+        # without an object: the balls facing their centroid, none when they lie on one line (fixed: the localizer's hot path)
+        self._enclosing = self._markers if _collinear(self._balls) else self._facing(self._balls.mean(axis=0))
 
     def _facing(self, point: np.ndarray) -> HalfPlanes:
         """The markers' half-planes and the balls' facing ``point`` (a ball at the point faces no way)."""
@@ -85,15 +87,15 @@ class KeepIn:
     def walls(self, x: np.ndarray) -> HalfPlanes:
         """The room's walls for the object estimate x = (xo, yo, r): the half-planes (balls facing the
         object) that hold it."""
-        planes = self._facing(np.asarray(x[:2], float))
-        holds = planes.normals @ np.asarray(x[:2], float) - planes.offsets >= float(x[2])
+        o = np.asarray(x[:2], float)
+        planes = self._facing(o)
+        holds = planes.normals @ o - planes.offsets >= float(x[2])
         return HalfPlanes(planes.normals[holds], planes.offsets[holds])
 
     def distances(self, positions: np.ndarray, walls: Optional[HalfPlanes] = None) -> np.ndarray:
         """Signed distances s_j (..., J) of positions (..., 2) in front of ``walls``; without them, of the
         markers' half-planes and the balls' facing their centroid (none when the balls lie on one line)."""
-        if walls is None:
-            walls = self._markers if _collinear(self._balls) else self._facing(self._balls.mean(axis=0))
+        walls = self._enclosing if walls is None else walls
         return positions @ walls.normals.T - walls.offsets
 
     def nearest(self, position: np.ndarray, x: np.ndarray) -> Optional[np.ndarray]:

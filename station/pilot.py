@@ -370,15 +370,14 @@ class Pilot:
                 if self._base_pitch is not None and head[1] < self._base_pitch:  # the base was cut: look down at it
                     head = self.robot.head.clamp(head[0], self._base_pitch)
                 self._object_gaze = head
-                facing = "facing the object: its base is below the head's reach at this yaw" if self._facing_turn else ""
+                goal = self._turn_pending() if standing and not self._facing_turn else None
                 if self._facing_turn:
-                    walk = (0.0, 0.0, self._facing_turn)
-                elif standing and self._turn_pending() is not None:
-                    facing = f"turning to {self._turn_goal:.2f} rad for the next landmark look"
-                    walk = self._turn_walk(self._turn_goal)
+                    walk, reason = (0.0, 0.0, self._facing_turn), "facing the object: its base is below the head's reach at this yaw"
+                elif goal is not None:
+                    walk, reason = self._turn_walk(goal), f"turning to {goal:.2f} rad for the next landmark look"
                 else:
-                    walk = self.command
-                decision = Decision(decision.phase, walk=walk, head=head, head_speed=speed, reason=facing)
+                    walk, reason = self.command, ""
+                decision = Decision(decision.phase, walk=walk, head=head, head_speed=speed, reason=reason)
             else:
                 p = self.config.mission
                 turn = "" if look.heading is None else f", turning to {look.heading:.2f} rad"
@@ -387,8 +386,10 @@ class Pilot:
                     f"landmark lookout: pose std {self.localizer.position_std() * 100:.1f} cm (lookout above {p.lookout_std * 100:.1f} cm)"
                     + (f"; standing: no fix for {self.mission.since_fix(t):.1f} s{turn}" if standing else "")))
         elif decision.phase is Phase.LOCALIZE:
-            sweep = self._localize_sweep(t)
-            decision = Decision(decision.phase, walk=(0.0, 0.0, sweep) if sweep else decision.walk, head=self._localize_gaze(t, sweep),
+            on_object = self._object_head() if self.ekf.initialized or self._last_sighting is not None else None
+            sweep = self._localize_sweep(t, on_object)
+            decision = Decision(decision.phase, walk=(0.0, 0.0, sweep) if sweep else decision.walk,
+                                head=self._localize_gaze(t, sweep, on_object),
                                 head_speed=self.config.mission.lookout_head_speed,
                                 reason=f"sweeping for landmarks: no fix in {self.mission.in_phase(t):.0f} s of standing" if sweep else "")
         if decision.walk is not None and not decision.stop:
@@ -611,14 +612,14 @@ class Pilot:
         centroid, head_at_capture = self._servo_sighting()
         return head_target(self.robot, self.pose, self.ekf.x, self.config.head_servo, centroid, self.camera, head_at_capture)
 
-    def _localize_gaze(self, t: float, sweep: float) -> Tuple[float, float]:
+    def _localize_gaze(self, t: float, sweep: float, on_object: Optional[Tuple[float, float]]) -> Tuple[float, float]:
         """LOCALIZE: standing looks (module docstring), even ``lookout_stand_dwell`` s on the object (its
         estimate, or before one its last sighting: a silhouette cut by a side border starts no filter),
         odd ones on the next yaw of the landmark scan more than half the field of view from it; while
-        the body sweeps (turn rate ``sweep``), on the scan's last yaw in the turn's direction."""
+        the body sweeps (turn rate ``sweep``), on the scan's last yaw in the turn's direction.
+        ``on_object``: the head's target on the object, None with neither estimate nor sighting."""
         p = self.config.mission
         slot = int(t // p.lookout_stand_dwell)
-        on_object = self._object_head() if self.ekf.initialized or self._last_sighting is not None else None
         if slot % 2 == 0 and on_object is not None:
             return on_object
         if sweep:
@@ -627,14 +628,14 @@ class Pilot:
         yaws = yaws or list(p.search_head_yaws)
         return self.robot.head.clamp(yaws[(slot // 2) % len(yaws)], p.init_pitch)
 
-    def _localize_sweep(self, t: float) -> float:
+    def _localize_sweep(self, t: float, on_object: Optional[Tuple[float, float]]) -> float:
         """LOCALIZE: the turn rate of the body's sweep (0: stand), after ``localize_turn_after`` s: at
         ``search_turn_rate``, reversed whenever the object's head yaw comes within ``TURN_MARGIN`` of a
         yaw limit, so the object stays in the head's range while the head's scan sweeps the room."""
         p = self.config.mission
         if self.mission.in_phase(t) < p.localize_turn_after or not self.ekf.initialized:
             return 0.0
-        yaw, (lo, hi) = self._object_head()[0], self.robot.head.yaw
+        yaw, (lo, hi) = on_object[0], self.robot.head.yaw  # an estimate exists: on_object is its target
         if yaw >= hi - TURN_MARGIN:  # turning left moves the object right in the head's range
             self._sweep = 1.0
         elif yaw <= lo + TURN_MARGIN:
