@@ -15,8 +15,10 @@ Landmark points (image u_i <-> world X_i):
   when the boxes gave fewer than ``min_points`` corners, the whole reduced frame is searched, and
   the whole full-size frame too when that found fewer than ``aruco_full_resolution_below`` markers
   (small, far markers vanish in the reduced image).
-* Colour markers: centroids of the blobs of each colour class (half resolution; blobs touching the
-  border are dropped, their centroid is biased). Colours repeat, so a blob is associated with the
+* Colour markers: the centres of the balls of each colour class: found at half resolution, each
+  ball's lit cap with its shaded side (the same hue and saturation, darker), the centroid of its
+  outline at full resolution (``_balls``, ``_ball_centre``; balls touching the border are dropped,
+  their centroid is biased). Colours repeat, so a blob is associated with the
   landmark of its colour whose projection from a pose (the prior, or the markers' pose) is
   nearest, within ``color_gate`` px, and only when no other landmark of that colour is within the
   gate. Associated by the prior, ``min_points_with_prior`` blobs give a fix (the prior is the
@@ -245,7 +247,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import cv2
@@ -256,7 +258,7 @@ from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
 from agent.keep_in import KeepIn
 from agent.marker_corners import refine_corners
-from agent.perception import PerceptionParams, blobs, check_image, color_mask
+from agent.perception import ColorClass, PerceptionParams, blobs, check_image, color_mask
 from nao_core.config import bounds
 from nao_core.geometry import (
     Pose,
@@ -308,6 +310,7 @@ class LocalizationParams:
     max_rejected_jumps: int = field(metadata=bounds(1, 1000))  # then the prior is wrong: accept
     color_gate: float = field(metadata=bounds(1.0, 1000.0))  # px, colour-landmark association gate
     color_below_aruco_points: int = field(metadata=bounds(0, 1000))  # colour landmarks only below this many ArUco corners
+    ball_shade_floor: float = field(metadata=bounds(0.0, 1.0))  # a ball's shaded side: its class's value floor times this
     odom_translation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_t, m per sqrt(m)
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     odom_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_s, std of the walk's speed scale error
@@ -760,7 +763,7 @@ class LandmarkDetector:
         return _merge_boxes([[*l, *h, s, 1] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
 
     def color_blobs(self, image_bgr: np.ndarray) -> Dict[str, np.ndarray]:
-        """Blob centroids (N x 2, full-size pixels) per colour class of the map, off the border."""
+        """Ball centres (N x 2, full-size pixels) per colour class of the map, off the border (``_balls``)."""
         if not self.colors:
             return {}
         assert self.perception is not None
@@ -771,19 +774,15 @@ class LandmarkDetector:
         out = {}
         for name in self.colors:
             color = self.perception.colors[name]
-            contours, areas, _ = blobs(color_mask(hsv, color), min_area)
             centres = []
-            for k in np.argsort(-areas, kind="stable"):  # largest first: the search keeps the first few
-                contour = contours[k]
-                x, y, w, h = cv2.boundingRect(contour)
+            for (x, y, w, h), shaded in _balls(hsv, color, self.params.ball_shade_floor, min_area):  # largest first: the search keeps the first few
                 if not _off_border((x, y, w, h), half.shape):
                     continue
-                # the centroid of the full-size mask in the blob's box (padded by one half-size pixel)
-                x0, y0 = max(0, 2 * x - 2), max(0, 2 * y - 2)
-                roi = image_bgr[y0 : 2 * (y + h) + 2, x0 : 2 * (x + w) + 2]
-                m = cv2.moments(color_mask(cv2.cvtColor(roi, cv2.COLOR_BGR2HSV), color), binaryImage=True)
-                if m["m00"] > 0:
-                    centres.append((x0 + m["m10"] / m["m00"], y0 + m["m01"] / m["m00"]))
+                x0, y0 = max(0, 2 * x - 2), max(0, 2 * y - 2)  # the box at full size, padded by one half-size pixel
+                roi = cv2.cvtColor(cv2.medianBlur(image_bgr[y0 : 2 * (y + h) + 2, x0 : 2 * (x + w) + 2], 3), cv2.COLOR_BGR2HSV)
+                centre = _ball_centre(roi, color, self.params.ball_shade_floor, shaded)
+                if centre is not None:
+                    centres.append((x0 + centre[0], y0 + centre[1]))
             out[name] = np.array(centres, dtype=float).reshape(-1, 2)
         return out
 
@@ -817,9 +816,81 @@ def subpix_corners(gray: np.ndarray, corners: np.ndarray, factor: int = 1) -> np
                             _SUBPIX_CRITERIA).reshape(4, 2)
 
 
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+BALL_SHADE_REACH = 1.25  # a ball's shade reaches at most this many times its lit cap's enclosing radius
+
+
 def _off_border(rect: Tuple[int, int, int, int], shape: Tuple[int, ...]) -> bool:
     x, y, w, h = rect
     return x > 0 and y > 0 and x + w < shape[1] and y + h < shape[0]
+
+
+def _balls(hsv: np.ndarray, color: ColorClass, shade_floor: float, min_area: int) -> List[Tuple[Tuple[int, int, int, int], bool]]:
+    """Lit balls of a colour class in an HSV image, largest first: their (x, y, w, h) boxes, and
+    whether their shade joined them.
+
+    A lit ball's shaded side is its colour darkened: same hue, same saturation, a lower value, below
+    the class's floor in a dim room, so the class's mask is a lit cap, often in pieces, whose
+    centroid is pulled towards the light (7 px on rendered balls at a quarter of the light). Pixels in
+    the class's hue and saturation down to ``shade_floor`` times its value floor (opened: no lone
+    pixels) join the class's pixels they touch; a component with at least ``min_area`` of the class's
+    pixels is a ball. The shade stays within the lit cap's enclosing circle, however thin the cap: a
+    lit crescent's tips are where the terminator, a great circle, meets the outline, another one, so
+    they are opposite ends of a diameter. A component reaching more than ``BALL_SHADE_REACH`` times
+    that circle's radius (plus a pixel) holds a dark surface of the ball's colour touching it, and
+    the class's pixels alone are the ball.
+    """
+    strict, loose = _ball_masks(hsv, color, shade_floor)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(loose, connectivity=8)
+    lit = np.bincount(labels[strict > 0], minlength=count)
+    lit[0] = 0
+    out = []
+    for k in np.argsort(-lit, kind="stable"):
+        if lit[k] < min_area:
+            break
+        x, y, w, h, _ = (int(v) for v in stats[k])
+        ball = (labels[y : y + h, x : x + w] == k).astype(np.uint8)
+        cap = ball & (strict[y : y + h, x : x + w] > 0)
+        if _reach(ball) <= BALL_SHADE_REACH * _reach(cap) + 1.0:
+            out.append(((x, y, w, h), True))
+        else:
+            x_, y_, w, h = cv2.boundingRect(cap)
+            out.append(((x + x_, y + y_, w, h), False))
+    return out
+
+
+def _reach(mask: np.ndarray) -> float:
+    """The radius of the circle enclosing a mask's pixels, px."""
+    points = np.vstack(cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]).reshape(-1, 2)
+    return float(cv2.minEnclosingCircle(points.astype(np.float32))[1])
+
+
+def _ball_masks(hsv: np.ndarray, color: ColorClass, shade_floor: float) -> Tuple[np.ndarray, np.ndarray]:
+    """The class's mask, and it with its shade (``_balls``)."""
+    strict = color_mask(hsv, color)
+    shaded = replace(color, value=(int(color.value[0] * shade_floor), color.value[1]))
+    return strict, cv2.morphologyEx(color_mask(hsv, shaded), cv2.MORPH_OPEN, _CROSS) | strict
+
+
+def _outline(mask: np.ndarray) -> np.ndarray:
+    return max(cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0], key=cv2.contourArea)
+
+
+def _ball_centre(hsv: np.ndarray, color: ColorClass, shade_floor: float, shaded: bool) -> Optional[Tuple[float, float]]:
+    """The (u, v) centroid of the outer outline (a highlight's desaturated hole filled) of the
+    largest ball in an HSV image around one, its shade joined or not (``_balls``). The image is
+    median-filtered (3 x 3) first by the caller: pixel noise at a shaded side's low value swings hue
+    and saturation out of the class and leaves the shade in speckles (centres 9 px off at 8 grey
+    levels of noise, 0.5 px filtered), and a median moves no edge."""
+    strict, loose = _ball_masks(hsv, color, shade_floor)
+    if not strict.any():
+        return None
+    labels = cv2.connectedComponents(loose if shaded else strict, connectivity=8)[1]
+    mask = (labels == np.bincount(labels[strict > 0]).argmax()).astype(np.uint8)
+    m = cv2.moments(_outline(mask))
+    if m["m00"] <= 0:  # a line of pixels
+        m = cv2.moments(mask, binaryImage=True)
+    return m["m10"] / m["m00"], m["m01"] / m["m00"]
 
 
 class RobotLocalizer:

@@ -26,7 +26,11 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   behind the near plane are dropped (the object is never that close to the camera);
 * ArUco markers: a white board standing on the floor (the quiet zone) and the marker image of
   ``cv2.aruco.generateImageMarker`` mapped onto the projected corners by ``cv2.warpPerspective``;
-* colour landmarks: a disc of the landmark's diameter facing the camera (a ball's outline), on a post.
+* colour landmarks: balls on posts, ray-cast on a sub-pixel grid (area-weighted anti-aliasing, so the
+  outline is the exact ellipse a sphere projects to); each sub-pixel whose ray meets the sphere
+  |c + t d - s| = r at t = -d.(c - s) - sqrt((d.(c - s))^2 - |c - s|^2 + r^2) (unit d) takes the
+  Lambert shade of the normal n = (c + t d - s) / r plus a Blinn-Phong highlight of white,
+  ``BALL_GLOSS`` max(0, n . h)^``BALL_SHININESS``, h the unit half-vector of l and -d.
 
 Motion blur: the shutter is open from the camera orientation R_0 (``R_open``) to R_1 (the pose
 drawn). The camera's translation over an exposure (a few mm) is neglected; its rotation maps the
@@ -63,6 +67,8 @@ MOTION_SAMPLES = 24  # most shifted copies averaged for the motion blur
 BOARD_MARGIN = 0.25  # white quiet zone around a marker, fraction of its side
 BOARD_AMBIENT = 0.85  # a matte white board facing into the room is lit from all round
 POST_RADIUS = 0.01  # m
+BALL_SUPERSAMPLE = 4  # sub-pixels per pixel side of a ball's outline
+BALL_GLOSS, BALL_SHININESS = 0.4, 40.0  # a plastic ball's highlight (Blinn-Phong), a share of white
 COLOURS_BGR = {
     "green": (60, 170, 40),
     "yellow": (30, 210, 230),
@@ -364,25 +370,55 @@ class _MarkerBoard:
         roi[:] = (warped * alpha + roi * (1.0 - alpha)).astype(np.uint8)
 
 
-class _ColourDisc:
-    """A coloured landmark: a disc facing the camera on a thin grey post."""
+class _ColourBall:
+    """A coloured landmark: a ball on a thin grey post, ray-cast per sub-pixel (module docstring)."""
 
-    def __init__(self, landmark: Landmark, color: Tuple[int, int, int]):
+    def __init__(self, landmark: Landmark, color: Tuple[int, int, int], light: Light):
         self.landmark = landmark
-        self.color = color
+        self.color = np.float32(color)
+        self.light = light
         self.centre = np.asarray(landmark.position, dtype=float)
-        self.radius = float(self.centre[2]) + landmark.diameter  # bounds the disc and the post
+        self.r = 0.5 * landmark.diameter
+        self.radius = float(self.centre[2]) + landmark.diameter  # bounds the ball and the post
         self.post_W = _post(*landmark.position)
+        self.cube_W = self.centre + self.r * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         _fill_hull(image, view, self.post_W, (110, 110, 110))
-        c = view.to_camera(self.centre[None])[0]
-        radius = 0.5 * self.landmark.diameter
-        if c[2] < NEAR + radius:
+        cube_C = view.to_camera(self.cube_W)
+        if cube_C[:, 2].min() < NEAR:
             return
-        uv = view.project(c[None])[0]
-        r_px = view.K[0, 0] * radius / float(np.linalg.norm(c))
-        cv2.circle(image, tuple(int(v) for v in _fixed(uv)), int(round(r_px * (1 << SHIFT))), self.color, -1, cv2.LINE_AA, SHIFT)
+        uv = view.project(cube_C)  # the cube's projection holds the ball's
+        h, w = image.shape[:2]
+        x0, y0 = (max(int(np.floor(v)) - 1, 0) for v in uv.min(axis=0))
+        x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 2, w), min(int(np.ceil(uv[:, 1].max())) + 2, h)
+        if x1 <= x0 or y1 <= y0:
+            return
+        S = BALL_SUPERSAMPLE
+        size = ((x1 - x0) * S, (y1 - y0) * S)  # sub-pixel J's centre: x0 - 1/2 + (J + 1/2) / S, as cv2.resize maps
+        x = cv2.resize(view.ray_x[y0:y1, x0:x1], size, interpolation=cv2.INTER_LINEAR).astype(np.float64)
+        y = cv2.resize(view.ray_y[y0:y1, x0:x1], size, interpolation=cv2.INTER_LINEAR).astype(np.float64)
+        d = np.stack([x, y, np.ones_like(x)], axis=-1) @ view.R_CW  # world directions (R_WC = R_CW^T)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        c = view.centre - self.centre
+        b = d @ c
+        disc = b * b - (c @ c - self.r**2)
+        hit = disc >= 0.0
+        if not hit.any():
+            return
+        t = -b - np.sqrt(np.maximum(disc, 0.0))
+        n = (c + t[..., None] * d) / self.r
+        halfway = self.light.direction - d
+        halfway /= np.maximum(np.linalg.norm(halfway, axis=-1, keepdims=True), 1e-12)
+        specular = BALL_GLOSS * np.maximum(0.0, np.sum(n * halfway, axis=-1)) ** BALL_SHININESS
+        paint = self.color * self.light.factor(n)[..., None] + (255.0 * specular)[..., None]
+        cover = hit.astype(np.float32)
+        area = (x1 - x0, y1 - y0)
+        alpha = cv2.resize(cover, area, interpolation=cv2.INTER_AREA)[..., None]
+        colour = cv2.resize((np.minimum(paint, 255.0) * cover[..., None]).astype(np.float32), area,
+                            interpolation=cv2.INTER_AREA) / np.maximum(alpha, 1e-6)
+        roi = image[y0:y1, x0:x1]
+        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + colour * alpha), 0, 255)
 
 
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
@@ -462,7 +498,7 @@ class Renderer:
                 if lm.color not in COLOURS_BGR:
                     known = sorted(COLOURS_BGR)
                     raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {known}")
-                self._items.append(_ColourDisc(lm, COLOURS_BGR[lm.color]))
+                self._items.append(_ColourBall(lm, COLOURS_BGR[lm.color], light))
         self._centres = np.array([item.centre for item in self._items])
         self._frustum = _frustum_normals(intrinsics)
         self._radii = np.array([item.radius for item in self._items])

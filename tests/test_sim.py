@@ -14,9 +14,9 @@ import pytest
 from agent.localization import LandmarkDetector, LocalizationParams
 from nao_bridge.sim_backend import SimBackend
 from nao_core.config import CONFIG_DIR, load
-from nao_core.landmark_map import load_landmark_map
+from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_core.robot_model import load_robot_model, nao_to_optical
-from nao_sim.render import NEAR, Light
+from nao_sim.render import BALL_GLOSS, BALL_SHININESS, COLOURS_BGR, NEAR, Light, Renderer
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 
@@ -25,6 +25,7 @@ pytestmark = pytest.mark.serial  # the simulator's real clock and its frame paci
 ROBOT = load_robot_model()
 CONFIG = load_sim_config()
 LANDMARKS = load_landmark_map(CONFIG.landmark_path)
+CAMERA_AT_ORIGIN = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]])  # T_WC: 0.5 m up, along +x
 
 
 class FakeClock:
@@ -215,6 +216,45 @@ def test_a_cylinder_side_is_shaded_by_the_normal_at_each_column(azimuth):
     ratio = frame.image[row, columns, 2] / shade
     assert shade.max() / shade.min() > 1.1  # the view shows lit and shaded parts of the side
     assert ratio.std() / ratio.mean() < 0.02, (ratio.std() / ratio.mean())
+
+
+def test_a_ball_is_a_lit_sphere_outlined_by_its_exact_projection():
+    """A colour landmark is drawn as a ball (render.py): its pixels are the sphere's projection, the
+    cone of rays tangent to it (an ellipse off the optical axis, centred outwards of the projection of
+    the ball's centre, where a disc facing the camera would sit), each in Lambert's shade of the
+    sphere's normal where its ray meets it, plus the highlight."""
+    intr = ROBOT.camera.intrinsics("vga")
+    ball = Landmark("b", "color", (1.6, 0.55, 0.45), color="green", diameter=0.3)
+    scenario = dataclasses.replace(CONFIG.scenario("can"), position=(40.0, 40.0))  # out of the room
+    quiet = dict(pixel_sigma=0.0, gain_sigma=0.0, seed=0)
+    image = Renderer(intr, CONFIG.room, LandmarkMap((ball,)), scenario, **quiet).render(CAMERA_AT_ORIGIN, 0)
+    empty = Renderer(intr, CONFIG.room, LandmarkMap(()), scenario, **quiet).render(CAMERA_AT_ORIGIN, 0)
+    v, u = np.mgrid[0 : intr.height, 0 : intr.width]
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)], axis=-1) @ CAMERA_AT_ORIGIN[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    c, r = CAMERA_AT_ORIGIN[:3, 3] - np.asarray(ball.position), 0.5 * ball.diameter
+    b = rays @ c
+    miss = np.sqrt(np.maximum(c @ c - b * b, 0.0)) - r  # m: the ray's closest approach beyond the sphere
+    inside, outside = miss < -0.01, miss > 0.01  # a pixel's angle is 3.4 mm at 2 m
+    changed = np.abs(image.astype(int) - empty).max(axis=2) > 0
+    centre_uv = project(np.array([ball.position]), CAMERA_AT_ORIGIN, "vga")[0]
+    post = (v > centre_uv[1]) & (np.abs(u - centre_uv[0]) < 8)
+    assert changed[inside].all() and not changed[outside & ~post].any()
+    ellipse = np.array([u[(miss < 0) & ~post].mean(), v[(miss < 0) & ~post].mean()])  # both without the post's columns
+    drawn = np.array([u[changed & ~post].mean(), v[changed & ~post].mean()])
+    assert np.linalg.norm(drawn - ellipse) < 0.2, (drawn, ellipse)
+    assert abs(u[miss < 0].mean() - centre_uv[0]) > 0.6  # the outline is no disc about the centre's projection
+    t = -b - np.sqrt(np.maximum(b * b - c @ c + r * r, 0.0))
+    normals = (c + t[..., None] * rays) / r
+    light = Light.of(CONFIG.room)
+    shade = light.factor(normals)
+    halfway = light.direction - rays
+    halfway /= np.linalg.norm(halfway, axis=-1, keepdims=True)
+    highlight = BALL_GLOSS * np.maximum(0.0, np.sum(normals * halfway, axis=-1)) ** BALL_SHININESS
+    expected = np.minimum(255.0, np.float64(COLOURS_BGR["green"]) * shade[..., None] + 255.0 * highlight[..., None])
+    error = np.abs(image[inside] - expected[inside])
+    assert shade[inside].max() / shade[inside].min() > 1.5  # the view shows the lit side and the shaded one
+    assert np.median(error) < 1.0 and np.percentile(error, 99) < 6.0, (np.median(error), np.percentile(error, 99))
 
 
 def test_frames_render_at_both_resolutions_with_noise():
