@@ -221,7 +221,7 @@ def run() -> str:
         "ball's centre (the ellipse a ball 2-4 m away projects to is centred within 0.2 px of it). The balls' shade joined to their lit "
         "cap (agent/localization.py ``_balls``) against the class's mask alone, in the same run; *still, cold* fixes of the same frames.",
         "",
-        "| room | ball pixels | balls in view | missed | centre error median / p90 / max px | still, cold fixes | error median / max mm | > 5 cm |",
+        "| room | the ball | balls in view | missed | centre error median / p90 / max px | still, cold fixes | error median / max mm | > 5 cm |",
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
         *_ball_centres(),
     ])
