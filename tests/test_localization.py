@@ -32,7 +32,7 @@ from nao_core.geometry import compose, planar_transform, relative, rot_x, rot_y,
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_sim.layouts import KINDS, layout_file, sample_layout
 from nao_sim.randomize import load_randomizer
-from nao_sim.render import COLOURS_BGR
+from nao_sim.render import COLOURS_BGR, Renderer
 from nao_sim.scenarios import load_sim_config
 from nao_core.robot_model import load_robot_model
 from nao_sim.world import SimWorld, orbit_pose
@@ -303,6 +303,26 @@ def test_a_shaded_ball_s_centre_is_the_sphere_s_not_its_lit_cap_s(params, percep
                 errors.append(distances.min())
     assert balls >= 20
     assert max(errors) < 0.6, (np.median(errors), max(errors))
+
+
+def test_a_near_ball_off_the_axis_is_found_at_its_centre_s_projection(params, perception, robot):
+    """A 14 cm ball 0.8 m away and 0.38 rad off the optical axis projects to an ellipse centred
+    2.1 px further out than its centre's projection (agent/localization.py ``sphere_centre_pixels``):
+    on the rendered ball, the outline's centroid is that far out, and the centre found with the
+    camera is the centre's projection."""
+    camera = camera_of(robot, "vga")
+    ball = Landmark(id="g", kind="color", color="green", position=(0.8 * math.cos(0.25) * math.cos(0.3), 0.8 * math.cos(0.25) * math.sin(0.3), 0.5 - 0.8 * math.sin(0.25)),
+                    diameter=0.14)
+    T_WC = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]])  # along +x
+    scenario = dataclasses.replace(load_sim_config().scenario("can"), position=(40.0, 40.0))  # out of the room
+    image = Renderer(robot.camera.intrinsics("vga"), load_sim_config().room, LandmarkMap((ball,)), scenario,
+                     pixel_sigma=1.0, gain_sigma=0.0, seed=0).render(T_WC, 0)
+    truth = camera.project_world(np.array([ball.position]), T_WC)[0][0]
+    detector = RobotLocalizer(params, LandmarkMap((ball,)), camera, perception).detector
+    outline, centre = detector.color_blobs(image)["green"], detector.color_blobs(image, camera)["green"]
+    assert len(outline) == len(centre) == 1
+    assert 1.6 < np.linalg.norm(outline[0] - truth) < 2.6, outline - truth
+    assert np.linalg.norm(centre[0] - truth) < 0.3, centre - truth
 
 
 def test_a_dark_patch_of_a_ball_s_colour_touching_it_does_not_move_its_centre(params, perception, robot):

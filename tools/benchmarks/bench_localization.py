@@ -180,7 +180,7 @@ def _ball_centres() -> List[str]:
             inside = in_front & np.all((uv > diameters[:, None]) & (uv < np.array([camera.width, camera.height]) - diameters[:, None]), axis=1)
             balls += int(inside.sum())
             for mode, solver in solvers.items():
-                found = solver.detector.color_blobs(frame.image)
+                found = solver.detector.color_blobs(frame.image, camera)
                 for lm, p, d in zip(np.array(world.landmarks.landmarks)[inside], uv[inside], diameters[inside]):
                     distances = np.linalg.norm(found[lm.color] - p, axis=1)
                     if distances.size and distances.min() < d:
