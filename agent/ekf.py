@@ -613,6 +613,7 @@ class ObjectEKF:
         self._alternative: Optional[State] = None  # filtered from the current streak of inconsistent views
         self._streak = 0  # views in a row the alternative explains and the estimate does not
         self._fused = 0  # views fused since the last (re)start
+        self._bearing_start: Optional[np.ndarray] = None  # the camera of a start without a width, until a view brings one
         self._gate = {dof: float(chdtri(dof, 1.0 - params.gate_probability)) for dof in (1, 2)}
         self._max_width = math.pi if params.width_model == "asin" else 0.5 * math.pi
 
@@ -701,6 +702,7 @@ class ObjectEKF:
             return self._reject_invalid(reason, dof)
         self._state = initial_state(self.params, cam, phi, delta, floor)
         self._alternative, self._streak, self._fused = None, 0, 1
+        self._bearing_start = np.asarray(cam, dtype=float) if delta is None else None
         self.stats.accepted += 1
         return UpdateResult(True, None, dof, None, "initialized")
 
@@ -720,11 +722,13 @@ class ObjectEKF:
         )
 
     def update(self, cam: Sequence[float], phi: float, delta: Optional[float] = None,
-               cam_cov: Optional[np.ndarray] = None) -> UpdateResult:
+               cam_cov: Optional[np.ndarray] = None, floor: Optional[FloorContact] = None) -> UpdateResult:
         """Fuse one observation (bearing-only when ``delta`` is None); gated, never leaves a NaN.
 
         ``cam_cov``: covariance of the camera pose (cx, cy, psi), added to the noise through Hc
-        (module docstring); None for a pose taken as exact.
+        (module docstring); None for a pose taken as exact. A filter started without a width
+        restarts from the first view with one, with that view's ``floor`` contact, while no baseline
+        has observed the range (docs/estimation.md, "A start without a width").
         """
         dof = 1 if delta is None else 2
         if self._state is None:
@@ -735,6 +739,12 @@ class ObjectEKF:
         cam = np.asarray(cam, dtype=float)
         state = self._state
         x = state.cartesian()[0]
+        if delta is not None and self._bearing_start is not None:
+            start = self._bearing_start
+            if math.hypot(*(cam[:2] - start[:2])) < self.params.min_parallax * math.hypot(*(x[:2] - start[:2])):
+                result = self.initialize(cam, phi, delta, floor)
+                return result if not result.accepted else dataclasses.replace(result, reason="restarted from the first view with a width")
+            self._bearing_start = None  # a baseline has observed the range since
         if not _outside(x, cam):
             return self._reject_invalid("camera inside the estimated object (d <= r)", dof)
         z = np.array([phi, 0.0 if delta is None else delta])[:dof]
@@ -795,7 +805,7 @@ class ObjectEKF:
         if self._streak < needed or not self._located(self._alternative, cam):
             self.stats.rejected_in_a_row += 1
             return UpdateResult(False, nis, nu.size, nu if nis is not None else None, reason)
-        self._state, self._alternative = self._alternative, None
+        self._state, self._alternative, self._bearing_start = self._alternative, None, None
         self._fused, self._streak = self._streak, 0
         self.stats.reinitialized += 1
         self.stats.rejected_in_a_row = 0

@@ -516,7 +516,7 @@ class Pilot:
         if self.ekf.initialized:
             self.ekf.predict(max(stamp - (self._last_capture or stamp), 0.0))
             turn = np.diag([0.0, 0.0, stamp_variance])
-            result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn)
+            result = self.ekf.update(cam, phi, delta, turn if cam_cov is None else cam_cov + turn, floor)
         elif turn_rate is None:
             return UpdateResult(False, None, 0, None, "no start from a camera whose turn is not known yet")
         elif turn_rate > c.start_max_turn_rate:

@@ -501,6 +501,28 @@ def test_a_standing_robot_with_a_biased_bearing_does_not_move_the_range(offset, 
 
 
 
+@pytest.mark.parametrize("radius", [0.033, 0.1])
+def test_a_start_without_a_width_restarts_from_the_first_view_with_one_and_its_floor_contact(radius):
+    """A first view cut at the bottom gives a bearing alone: the start is at the default range. Width
+    views from the standing robot then carried the range to radius prior / sin(delta / 2), however
+    wrong (one-wall world 507: a 21 cm-wide remote 1 m away put at 0.5 m with a 7 cm std, then lost):
+    a Cartesian start has no range to leave alone. Now the first view with a width restarts the filter
+    with its floor contact, and the range stays right."""
+    truth = np.array([1.0, -0.3, radius])
+    start = np.array([0.06, 0.0, 0.0])
+    ekf = ObjectEKF(PARAMS)
+    ekf.initialize(start, measure(truth, start)[0])
+    for k in range(30):  # the head turns: the camera moves by 2 cm
+        cam = np.array([0.06 + 0.01 * math.sin(k), -0.02 * (k % 2), -0.25])
+        floor = FloorContact(floor_depression(truth, cam, 0.5)[0], 0.5)
+        ekf.predict(0.07)
+        result = ekf.update(cam, *measure(truth, cam), floor=floor)
+        assert result.accepted and (k > 0 or result.reason == "restarted from the first view with a width")
+    distance = math.hypot(*(truth[:2] - start[:2]))
+    assert math.hypot(*(ekf.x[:2] - truth[:2])) < 0.08 * distance
+    assert abs(ekf.x[2] - radius) < 0.3 * radius
+
+
 @settings(max_examples=100, deadline=None)
 @given(coord, coord, st.floats(0.02, 0.3), coord, coord, st.floats(-math.pi, math.pi))
 def test_pose_noise_is_the_camera_covariance_through_the_camera_jacobian(xo, yo, r, cx, cy, psi):
