@@ -684,6 +684,10 @@ class LandmarkDetector:
                     raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class")
                 self.colors.setdefault(str(lm.color), []).append(lm)
         self.color_landmarks = [lm for lms in self.colors.values() for lm in lms]
+        self.shaded: Dict[str, ColorClass] = {}  # each class with its value floor lowered to a ball's shade (``_balls``)
+        for name in self.colors:
+            color = perception.colors[name]
+            self.shaded[name] = replace(color, value=(int(color.value[0] * params.ball_shade_floor), color.value[1]))
 
     def _detect(self, image: np.ndarray, min_side: float) -> List[Tuple[str, int, np.ndarray]]:
         found = []
@@ -775,14 +779,14 @@ class LandmarkDetector:
         min_area = max(1, self.perception.landmark_min_area // 4)
         out = {}
         for name in self.colors:
-            color = self.perception.colors[name]
+            color, shade = self.perception.colors[name], self.shaded[name]
             centres = []
-            for (x, y, w, h), shaded in _balls(hsv, color, self.params.ball_shade_floor, min_area):  # largest first: the search keeps the first few
+            for (x, y, w, h), shaded in _balls(hsv, color, shade, min_area):  # largest first: the search keeps the first few
                 if not _off_border((x, y, w, h), half.shape):
                     continue
                 x0, y0 = max(0, 2 * x - 2), max(0, 2 * y - 2)  # the box at full size, padded by one half-size pixel
                 roi = cv2.cvtColor(cv2.medianBlur(image_bgr[y0 : 2 * (y + h) + 2, x0 : 2 * (x + w) + 2], 3), cv2.COLOR_BGR2HSV)
-                centre = _ball_centre(roi, color, self.params.ball_shade_floor, shaded)
+                centre = _ball_centre(roi, color, shade, shaded)
                 if centre is not None:
                     centres.append((x0 + centre[0], y0 + centre[1], centre[2]))
             found = np.array(centres, dtype=float).reshape(-1, 3)
@@ -828,22 +832,22 @@ def _off_border(rect: Tuple[int, int, int, int], shape: Tuple[int, ...]) -> bool
     return x > 0 and y > 0 and x + w < shape[1] and y + h < shape[0]
 
 
-def _balls(hsv: np.ndarray, color: ColorClass, shade_floor: float, min_area: int) -> List[Tuple[Tuple[int, int, int, int], bool]]:
+def _balls(hsv: np.ndarray, color: ColorClass, shade: ColorClass, min_area: int) -> List[Tuple[Tuple[int, int, int, int], bool]]:
     """Lit balls of a colour class in an HSV image, largest first: their (x, y, w, h) boxes, and
     whether their shade joined them.
 
     A lit ball's shaded side is its colour darkened: same hue, same saturation, a lower value, below
     the class's floor in a dim room, so the class's mask is a lit cap, often in pieces, whose
     centroid is pulled towards the light (7 px on rendered balls at a quarter of the light). Pixels in
-    the class's hue and saturation down to ``shade_floor`` times its value floor (opened: no lone
-    pixels) join the class's pixels they touch; a component with at least ``min_area`` of the class's
+    the class's hue and saturation down to ``ball_shade_floor`` times its value floor (``shade``;
+    opened: no lone pixels) join the class's pixels they touch; a component with at least ``min_area`` of the class's
     pixels is a ball. The shade stays within the lit cap's enclosing circle, however thin the cap: a
     lit crescent's tips are where the terminator, a great circle, meets the outline, another one, so
     they are opposite ends of a diameter. A component reaching more than ``BALL_SHADE_REACH`` times
     that circle's radius (plus a pixel) holds a dark surface of the ball's colour touching it, and
     the class's pixels alone are the ball.
     """
-    strict, loose = _ball_masks(hsv, color, shade_floor)
+    strict, loose = _ball_masks(hsv, color, shade)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(loose, connectivity=8)
     lit = np.bincount(labels[strict > 0], minlength=count)
     lit[0] = 0
@@ -868,24 +872,23 @@ def _reach(mask: np.ndarray) -> float:
     return float(cv2.minEnclosingCircle(points.astype(np.float32))[1])
 
 
-def _ball_masks(hsv: np.ndarray, color: ColorClass, shade_floor: float) -> Tuple[np.ndarray, np.ndarray]:
+def _ball_masks(hsv: np.ndarray, color: ColorClass, shade: ColorClass) -> Tuple[np.ndarray, np.ndarray]:
     """The class's mask, and it with its shade (``_balls``)."""
     strict = color_mask(hsv, color)
-    shaded = replace(color, value=(int(color.value[0] * shade_floor), color.value[1]))
-    return strict, cv2.morphologyEx(color_mask(hsv, shaded), cv2.MORPH_OPEN, _CROSS) | strict
+    return strict, cv2.morphologyEx(color_mask(hsv, shade), cv2.MORPH_OPEN, _CROSS) | strict
 
 
 def _outline(mask: np.ndarray) -> np.ndarray:
     return max(cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0], key=cv2.contourArea)
 
 
-def _ball_centre(hsv: np.ndarray, color: ColorClass, shade_floor: float, shaded: bool) -> Optional[Tuple[float, float, float]]:
+def _ball_centre(hsv: np.ndarray, color: ColorClass, shade: ColorClass, shaded: bool) -> Optional[Tuple[float, float, float]]:
     """The (u, v) centroid and the area (px) of the outer outline (a highlight's desaturated hole
     filled) of the largest ball in an HSV image around one, its shade joined or not (``_balls``). The image is
     median-filtered (3 x 3) first by the caller: pixel noise at a shaded side's low value swings hue
     and saturation out of the class and leaves the shade in speckles (centres 9 px off at 8 grey
     levels of noise, 0.5 px filtered), and a median moves no edge."""
-    strict, loose = _ball_masks(hsv, color, shade_floor)
+    strict, loose = _ball_masks(hsv, color, shade)
     if not strict.any():
         return None
     labels = cv2.connectedComponents(loose if shaded else strict, connectivity=8)[1]

@@ -412,13 +412,11 @@ class _ColourBall:
         halfway /= np.maximum(np.linalg.norm(halfway, axis=-1, keepdims=True), 1e-12)
         specular = BALL_GLOSS * np.maximum(0.0, np.sum(n * halfway, axis=-1)) ** BALL_SHININESS
         paint = self.color * self.light.factor(n)[..., None] + (255.0 * specular)[..., None]
-        cover = hit.astype(np.float32)
         area = (x1 - x0, y1 - y0)
-        alpha = cv2.resize(cover, area, interpolation=cv2.INTER_AREA)[..., None]
-        colour = cv2.resize((np.minimum(paint, 255.0) * cover[..., None]).astype(np.float32), area,
-                            interpolation=cv2.INTER_AREA) / np.maximum(alpha, 1e-6)
+        alpha = cv2.resize(hit.astype(np.float32), area, interpolation=cv2.INTER_AREA)[..., None]
+        covered = cv2.resize((np.minimum(paint, 255.0) * hit[..., None]).astype(np.float32), area, interpolation=cv2.INTER_AREA)
         roi = image[y0:y1, x0:x1]
-        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + colour * alpha), 0, 255)
+        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + covered), 0, 255)  # covered: the ball's colour times its coverage
 
 
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
