@@ -74,7 +74,7 @@ def run() -> str:
     return (
         "## Simulator rendering\n\n"
         f"`SimWorld.render()` per frame over {FRAMES} poses on a 0.6-1.2 m orbit around the object, camera aimed "
-        "at it (ray-cast floor and walls, object, ArUco boards, discs, noise). Wall time and process CPU time "
+        "at it (ray-cast floor and walls, object, ArUco boards, balls, noise). Wall time and process CPU time "
         "(all threads). Target: VGA comfortably faster than 15 fps (66.7 ms). Shared 2-core machine: noisy.\n\n"
         "Command: `.venv/bin/python -m tools.bench --only sim`\n\n"
         f"{table}\n\n"
