@@ -28,7 +28,9 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
 * drawn last, the room's looks: a floor and a wall paint from ``floor_colors`` and ``wall_colors``
   (colours of real rooms that none of the perception's colour classes takes), and the light from
   an azimuth U(-pi, pi) at an elevation U(``light_elevation``) above the horizon, with an ambient
-  share U(``ambient``).
+  share U(``ambient``);
+* after the drawn layout, the object's finish: a highlight of gloss U(``object_gloss``) and
+  shininess U(``object_shininess``) (Blinn-Phong, nao_sim/render.py).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -82,6 +84,8 @@ class Randomizer:
     wall_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))
     light_elevation: Tuple[float, float] = field(metadata=bounds(0.1, math.pi / 2))  # rad above the horizon
     ambient: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))
+    object_gloss: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # share of white in the object's highlight
+    object_shininess: Tuple[float, float] = field(metadata=bounds(1.0, 1000.0))  # its Blinn-Phong exponent
     drawn_layout: DrawnLayoutParams
 
     def __post_init__(self) -> None:
@@ -122,7 +126,8 @@ class WorldSpec:
                 "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error],
                 "shutter_ms": round(1e3 * noise.shutter, 1), "floor_color": list(self.config.room.floor_color),
                 "wall_color": list(self.config.room.wall_color), "light": [round(x, 2) for x in self.config.room.light],
-                "ambient": round(self.config.room.ambient, 2)}
+                "ambient": round(self.config.room.ambient, 2), "object_gloss": round(self.scenario.gloss, 2),
+                "object_shininess": round(self.scenario.shininess, 1)}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -192,6 +197,9 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
         drawn = one_wall(drawn) if one_wall_only else drawn
         layout_name, landmark_path = f"drawn {drawn.kind}{', one wall' if one_wall_only else ''}", layout_file(drawn)
         config = config.with_layout(str(landmark_path), drawn.half_size)
+    scenario = dataclasses.replace(scenario, gloss=float(rng.uniform(*r.object_gloss)),
+                                   shininess=float(rng.uniform(*r.object_shininess)))
+    config = dataclasses.replace(config, scenarios={object_name: scenario})
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare)
 
 

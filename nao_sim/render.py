@@ -94,10 +94,33 @@ class Light:
         """ambient + (1 - ambient) max(0, n . l) of unit normals (..., 3), or of horizontal ones (..., 2)."""
         return self.ambient + (1.0 - self.ambient) * np.maximum(0.0, normals @ self.direction[: normals.shape[-1]])
 
+    def highlight(self, normals: np.ndarray, rays: np.ndarray, material: "Material") -> np.ndarray:
+        """Blinn-Phong: gloss max(0, n . h)^shininess, h the unit half-vector of l and -d, of unit
+        normals and unit ray directions d (from the camera), both (..., 3); the share of white added."""
+        halfway = self.direction - rays
+        halfway = halfway / np.maximum(np.linalg.norm(halfway, axis=-1, keepdims=True), 1e-12)
+        return material.gloss * np.maximum(0.0, np.sum(normals * halfway, axis=-1)) ** material.shininess
+
     def shade(self, color: Sequence[int], normal: np.ndarray) -> Tuple[int, int, int]:
         """The colour times its Lambert factor."""
         k = float(self.factor(np.asarray(normal, dtype=float)))
         return tuple(int(min(255, round(c * k))) for c in color)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Material:
+    """A surface's highlight (``Light.highlight``): a share ``gloss`` of white, ``shininess`` its exponent."""
+
+    gloss: float = 0.0
+    shininess: float = 20.0
+
+
+MATTE = Material()
+BALL = Material(BALL_GLOSS, BALL_SHININESS)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
 class _View:
@@ -198,10 +221,11 @@ def _fill_hull(image: np.ndarray, view: _View, points_W: np.ndarray, color: Pain
 class _Solid:
     """A convex part with flat-shaded faces: a box (six faces)."""
 
-    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light):
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light, material: Material = MATTE):
         self.points_W = points_W  # the 4 bottom corners, then the 4 top ones
         self.centre = points_W.mean(axis=0)
         self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
+        self.light, self.material = light, material
         bottom, top = points_W[:4], points_W[4:]
         self.hull_color = light.shade(color, np.zeros(3))
         self.faces = []
@@ -211,18 +235,22 @@ class _Solid:
             self.faces.append((face, normal, light.shade(color, normal)))
 
     def draw(self, image: np.ndarray, view: _View) -> None:
-        """The hull first (no seams between faces), then every face turned towards the camera."""
+        """The hull first (no seams between faces), then every face turned towards the camera, its
+        highlight taken at the ray to its centre (flat shading)."""
         _fill_hull(image, view, self.points_W, self.hull_color)
         for face, normal, color in self.faces:
             if np.dot(normal, view.centre - face[0]) > 1e-9:
-                _fill_hull(image, view, face, color)
+                white = 255.0 * float(self.light.highlight(normal, _unit(face.mean(axis=0) - view.centre), self.material))
+                _fill_hull(image, view, face, tuple(int(min(255, round(c + white))) for c in color))
 
 
 class _MeshSolid:
     """A triangle mesh part (nao_sim/meshes.py), flat-shaded per triangle."""
 
-    def __init__(self, vertices_W: np.ndarray, faces: np.ndarray, color: Tuple[int, int, int], light: Light):
+    def __init__(self, vertices_W: np.ndarray, faces: np.ndarray, color: Tuple[int, int, int], light: Light,
+                 material: Material = MATTE):
         self.vertices_W = vertices_W
+        self.light, self.material = light, material
         self.faces = faces
         self.centre = 0.5 * (vertices_W.min(axis=0) + vertices_W.max(axis=0))
         self.radius = float(np.linalg.norm(vertices_W - self.centre, axis=1).max())
@@ -232,8 +260,7 @@ class _MeshSolid:
         keep = length > 0.0  # degenerate triangles cover no pixel
         self.faces, tri, self.normals = faces[keep], tri[keep], normals[keep] / length[keep, None]
         self.centroids = tri.mean(axis=1)
-        k = light.factor(self.normals)
-        self.colors = np.minimum(255, np.rint(np.outer(k, color))).astype(np.uint8)
+        self.lambert = np.outer(light.factor(self.normals), color)
 
     def draw(self, image: np.ndarray, view: _View) -> None:
         facing = np.einsum("fi,fi->f", self.normals, view.centre - self.centroids) > 0.0
@@ -255,7 +282,8 @@ class _MeshSolid:
         size = ((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE)
         paint, cover = np.zeros(size + (3,), np.uint8), np.zeros(size, np.uint8)
         sub = _fixed((uv - np.float64([x0, y0]) + 0.5) * SUPERSAMPLE - 0.5)
-        colors = self.colors[facing]
+        white = 255.0 * self.light.highlight(self.normals[facing], _unit(self.centroids[facing] - view.centre), self.material)
+        colors = np.minimum(255, np.rint(self.lambert[facing] + white[:, None])).astype(np.uint8)
         for i in order:
             polygon = sub[faces[i]]
             cv2.fillConvexPoly(paint, polygon, tuple(int(c) for c in colors[i]), lineType=cv2.LINE_8, shift=SHIFT)
@@ -274,9 +302,9 @@ class _Cylinder:
     approach to the axis for the rim's anti-aliased pixels whose ray misses it), so the light varies
     across the side as on a real can; the top cap over it, in its own shade, when seen from above."""
 
-    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light):
+    def __init__(self, points_W: np.ndarray, color: Tuple[int, int, int], light: Light, material: Material = MATTE):
         self.points_W = points_W  # bottom ring, then top ring
-        self.light = light
+        self.light, self.material = light, material
         self.centre = points_W.mean(axis=0)
         self.radius = float(np.linalg.norm(points_W - self.centre, axis=1).max())
         self.top = points_W[len(points_W) // 2:]
@@ -288,13 +316,16 @@ class _Cylinder:
     def draw(self, image: np.ndarray, view: _View) -> None:
         _fill_hull(image, view, self.points_W, lambda *roi: self._side(view, *roi))
         if view.centre[2] > self.top[0, 2]:
-            _fill_hull(image, view, self.top, self.top_color)
+            up, centre = np.array([0.0, 0.0, 1.0]), self.top.mean(axis=0)
+            white = 255.0 * float(self.light.highlight(up, _unit(centre - view.centre), self.material))
+            _fill_hull(image, view, self.top, tuple(int(min(255, round(c + white))) for c in self.top_color))
 
     def _side(self, view: _View, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """The shaded side's colour at each pixel of the ROI (rows x columns x 3)."""
         x, y = view.ray_x[y0:y1, x0:x1], view.ray_y[y0:y1, x0:x1]
         rays_C = np.stack([x, y, np.ones_like(x)], axis=-1)
-        d = (rays_C.astype(np.float64) @ view.R_CW)[..., :2]  # world directions (R_WC = R_CW^T), horizontal part
+        rays_W = rays_C.astype(np.float64) @ view.R_CW  # world directions (R_WC = R_CW^T)
+        d = rays_W[..., :2]  # their horizontal part
         c = view.centre[:2] - self.axis
         a, b = np.maximum(np.sum(d * d, axis=-1), 1e-12), d @ c
         disc = b * b - a * (c @ c - self.r**2)
@@ -302,7 +333,11 @@ class _Cylinder:
         p = c + t[..., None] * d
         n = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
         k = self.light.factor(n)
-        return np.minimum(255.0, self.color * k[..., None].astype(np.float32))
+        paint = self.color * k[..., None].astype(np.float32)
+        if self.material.gloss > 0.0:
+            normals = np.concatenate([n, np.zeros(n.shape[:-1] + (1,))], axis=-1)
+            paint = paint + (255.0 * self.light.highlight(normals, _unit(rays_W), self.material))[..., None].astype(np.float32)
+        return np.minimum(255.0, paint)
 
 
 def _post(x: float, y: float, top: float) -> np.ndarray:
@@ -408,10 +443,7 @@ class _ColourBall:
             return
         t = -b - np.sqrt(np.maximum(disc, 0.0))
         n = (c + t[..., None] * d) / self.r
-        halfway = self.light.direction - d
-        halfway /= np.maximum(np.linalg.norm(halfway, axis=-1, keepdims=True), 1e-12)
-        specular = BALL_GLOSS * np.maximum(0.0, np.sum(n * halfway, axis=-1)) ** BALL_SHININESS
-        paint = self.color * self.light.factor(n)[..., None] + (255.0 * specular)[..., None]
+        paint = self.color * self.light.factor(n)[..., None] + (255.0 * self.light.highlight(n, d, BALL))[..., None]
         area = (x1 - x0, y1 - y0)
         alpha = cv2.resize(hit.astype(np.float32), area, interpolation=cv2.INTER_AREA)[..., None]
         covered = cv2.resize((np.minimum(paint, 255.0) * hit[..., None]).astype(np.float32), area, interpolation=cv2.INTER_AREA)
@@ -483,10 +515,11 @@ class Renderer:
         self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
         light = Light.of(room)
+        material = Material(scenario.gloss, scenario.shininess)
         self._items: List = [
-            _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color, light) if p.shape == "mesh"
-            else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color, light) if p.shape == "cylinder"
-            else _Solid(p.world_points(scenario.position, scenario.yaw), scenario.color, light)
+            _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color, light, material) if p.shape == "mesh"
+            else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color, light, material)
+            if p.shape == "cylinder" else _Solid(p.world_points(scenario.position, scenario.yaw), scenario.color, light, material)
             for p in scenario.parts
         ]
         for lm in landmarks.landmarks:

@@ -218,6 +218,40 @@ def test_a_cylinder_side_is_shaded_by_the_normal_at_each_column(azimuth):
     assert ratio.std() / ratio.mean() < 0.02, (ratio.std() / ratio.mean())
 
 
+def test_a_glossy_can_adds_the_blinn_phong_highlight_of_each_pixel_s_normal_to_its_shade():
+    """An object's ``gloss`` and ``shininess`` (Scenario) add white in the share Blinn-Phong gives
+    (render.py): at every inside pixel of a row, glossy minus matte is 255 gloss max(0, n . h)^s, h
+    the half-vector of the light and the pixel's ray; the outline stays where it was."""
+    intr = ROBOT.camera.intrinsics("vga")
+    room = dataclasses.replace(CONFIG.room, light=(-0.95, 0.1, 0.3))  # low, from behind the camera
+    matte = dataclasses.replace(CONFIG.scenario("can"), position=(1.5, 0.03), gloss=0.0)
+    glossy = dataclasses.replace(matte, gloss=0.8, shininess=8.0)
+    quiet = dict(pixel_sigma=0.0, gain_sigma=0.0, seed=0)
+    images = [Renderer(intr, room, LandmarkMap(()), sc, **quiet).render(CAMERA_AT_ORIGIN, 0).astype(float)
+              for sc in (matte, glossy)]
+    background = Renderer(intr, room, LandmarkMap(()), dataclasses.replace(matte, position=(40.0, 40.0)),
+                          **quiet).render(CAMERA_AT_ORIGIN, 0).astype(float)
+    o, r = np.asarray(matte.position), matte.radius
+    row = int(round(project(np.array([[*o, 0.05]]), CAMERA_AT_ORIGIN, "vga")[0, 1]))
+    changed = [np.flatnonzero(np.abs(image[row] - images[0][row] if k else image[row] - background[row]).max(axis=1) > 0)
+               for k, image in enumerate(images)]
+    assert changed[1].min() >= changed[0].min() and changed[1].max() <= changed[0].max()  # nothing outside the outline
+    columns = changed[0][3:-3]  # off the anti-aliased edges
+    rays = np.column_stack([(columns - intr.cx) / intr.fx, np.full(len(columns), (row - intr.cy) / intr.fy),
+                            np.ones(len(columns))]) @ CAMERA_AT_ORIGIN[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    c, d = CAMERA_AT_ORIGIN[:2, 3] - o, rays[:, :2]
+    a, b, q = np.sum(d * d, axis=1), 2.0 * d @ c, c @ c - r * r
+    t = (-b - np.sqrt(b * b - 4.0 * a * q)) / (2.0 * a)
+    normals = np.column_stack([(c + t[:, None] * d) / r, np.zeros(len(columns))])
+    halfway = Light.of(room).direction - rays
+    halfway /= np.linalg.norm(halfway, axis=1, keepdims=True)
+    expected = 255.0 * glossy.gloss * np.maximum(0.0, np.sum(normals * halfway, axis=1)) ** glossy.shininess
+    added = images[1][row, columns, 0] - images[0][row, columns, 0]  # blue: far from 255 in either
+    assert expected.max() > 60.0 and expected.min() < 0.5 * expected.max()  # a highlight, brighter in its middle
+    assert np.abs(added - expected).max() < 1.5, np.abs(added - expected).max()
+
+
 def test_a_ball_is_a_lit_sphere_outlined_by_its_exact_projection():
     """A colour landmark is drawn as a ball (render.py): its pixels are the sphere's projection, the
     cone of rays tangent to it (an ellipse off the optical axis, centred outwards of the projection of
