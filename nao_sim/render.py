@@ -30,7 +30,10 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   outline is the exact ellipse a sphere projects to); each sub-pixel whose ray meets the sphere
   |c + t d - s| = r at t = -d.(c - s) - sqrt((d.(c - s))^2 - |c - s|^2 + r^2) (unit d) takes the
   Lambert shade of the normal n = (c + t d - s) / r plus a Blinn-Phong highlight of white,
-  ``BALL_GLOSS`` max(0, n . h)^``BALL_SHININESS``, h the unit half-vector of l and -d.
+  ``BALL_GLOSS`` max(0, n . h)^``BALL_SHININESS``, h the unit half-vector of l and -d;
+* the object's finish (``Material``: its scenario's ``gloss`` and ``shininess``) adds the same
+  highlight, 255 gloss max(0, n . h)^shininess, to every pixel of a cylinder's side and to each face
+  of a box or a mesh (flat: n the face's normal, d the ray to its centre); 0 gloss: matte.
 
 Motion blur: the shutter is open from the camera orientation R_0 (``R_open``) to R_1 (the pose
 drawn). The camera's translation over an exposure (a few mm) is neglected; its rotation maps the

@@ -61,3 +61,26 @@ def test_provenance_names_the_file_that_set_each_key(tmp_path):
     assert table["station.flush_interval"][1] == str(CONFIG_DIR / "station.yaml")
     config = load_station_config([first, second])
     assert {k.split(".")[0] for k in table} == set(SECTIONS) and table["ekf." + next(iter(vars(config.ekf)))][1] != "default"
+
+
+@pytest.mark.parametrize(
+    "colour, match",
+    [
+        ("red", r"m.yaml: landmark 'b-2': colour 'red' is the object's \(perception.object_color\)"),
+        ("orange", r"m.yaml: landmark 'b-2': colour 'orange' is not a perception colour class"),
+    ],
+)
+def test_a_ball_of_the_object_s_colour_or_of_no_class_is_refused_by_name(tmp_path, colour, match):
+    """A ball the object's colour would be taken for the object; the station refuses the map at load,
+    before it connects, naming the map, the landmark and the colour."""
+    (tmp_path / "m.yaml").write_text(
+        "landmarks:\n"
+        "  - {id: b-1, kind: color, color: green, position: [2.0, 0.0, 0.3], diameter: 0.1}\n"
+        f"  - {{id: b-2, kind: color, color: {colour}, position: [2.0, 0.6, 0.3], diameter: 0.1}}\n")
+    override = tmp_path / "o.yaml"
+    override.write_text(f"station:\n  landmark_map: {tmp_path / 'm.yaml'}\n")
+    with pytest.raises(ConfigError, match=match):
+        load_station_config([override])
+    override.write_text(f"station:\n  landmark_map: {tmp_path / 'm.yaml'}\nperception:\n  object_color: blue\n")
+    if colour == "red":  # the same map with a blue object is fine
+        assert len(load_station_config([override]).landmarks.of_kind("color")) == 2
