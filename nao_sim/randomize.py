@@ -30,7 +30,9 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   an azimuth U(-pi, pi) at an elevation U(``light_elevation``) above the horizon, with an ambient
   share U(``ambient``);
 * after the drawn layout, the object's finish: a highlight of gloss U(``object_gloss``) and
-  shininess U(``object_shininess``) (Blinn-Phong, nao_sim/render.py).
+  shininess U(``object_shininess``) (Blinn-Phong, nao_sim/render.py); then its paint: one of
+  ``object_colors`` (a perception colour class and its lit BGR) that no ball of the map has,
+  the station told it (``WorldSpec.object_color``: ``perception.object_color``).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """
@@ -47,6 +49,7 @@ import numpy as np
 
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import Pose
+from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
 from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file, one_wall
 from nao_sim.scenarios import Room, Scenario, SimConfig, load_sim_config
@@ -86,13 +89,14 @@ class Randomizer:
     ambient: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))
     object_gloss: Tuple[float, float] = field(metadata=bounds(0.0, 1.0))  # share of white in the object's highlight
     object_shininess: Tuple[float, float] = field(metadata=bounds(1.0, 1000.0))  # its Blinn-Phong exponent
+    object_colors: Dict[str, Tuple[float, float, float]] = field(metadata=bounds(0.0, 255.0))  # class -> lit BGR
     drawn_layout: DrawnLayoutParams
 
     def __post_init__(self) -> None:
         if not self.layouts or not self.objects:
             raise ValueError("randomizer: 'layouts' and 'objects' must not be empty")
-        if not self.floor_colors or not self.wall_colors:
-            raise ValueError("randomizer: 'floor_colors' and 'wall_colors' must not be empty")
+        if not self.floor_colors or not self.wall_colors or not self.object_colors:
+            raise ValueError("randomizer: 'floor_colors', 'wall_colors' and 'object_colors' must not be empty")
 
 
 def load_randomizer(overrides: Sequence[Union[str, Path]] = ()) -> Randomizer:
@@ -113,10 +117,11 @@ class WorldSpec:
     robot: RobotModel  # the simulator's true camera; the station keeps the configured one
     start: Pose
     bare_naoqi: bool = False  # served by StandIn(bare=True)
+    object_color: str = "red"  # the object's perception colour class (the station's perception.object_color)
 
     def summary(self) -> Dict[str, object]:
         dyn, noise = self.config.dynamics, self.config.noise
-        return {"seed": self.seed, "layout": self.layout, "object": self.object_name,
+        return {"seed": self.seed, "layout": self.layout, "object": self.object_name, "object_color": self.object_color,
                 "start_distance": round(math.dist(self.start[:2], self.scenario.position), 3),
                 "start_bearing_deg": round(math.degrees(_bearing(self.start, self.scenario.position)), 1),
                 "speed_scale_sigma": round(dyn.speed_scale_sigma[0], 3), "sway_roll": round(dyn.sway.roll, 3),
@@ -199,8 +204,15 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
         config = config.with_layout(str(landmark_path), drawn.half_size)
     scenario = dataclasses.replace(scenario, gloss=float(rng.uniform(*r.object_gloss)),
                                    shininess=float(rng.uniform(*r.object_shininess)))
+    balls = {lm.color for lm in load_landmark_map(landmark_path).of_kind("color")}
+    free = sorted(set(r.object_colors) - balls)
+    if not free:
+        raise ValueError(f"randomizer: every object colour {sorted(r.object_colors)} is a ball's in {landmark_path}")
+    object_color = free[int(rng.integers(len(free)))]
+    scenario = dataclasses.replace(scenario, color=tuple(int(c) for c in r.object_colors[object_color]))
     config = dataclasses.replace(config, scenarios={object_name: scenario})
-    return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare)
+    return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,
+                     object_color)
 
 
 class RandomWorld(SimWorld):

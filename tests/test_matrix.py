@@ -176,6 +176,10 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
         assert looks.floor_color in r.floor_colors and looks.wall_color in r.wall_colors
         assert math.sin(r.light_elevation[0]) - 1e-9 <= looks.light[2] <= math.sin(r.light_elevation[1]) + 1e-9
         assert math.hypot(*looks.light) == pytest.approx(1.0) and r.ambient[0] <= looks.ambient <= r.ambient[1]
+        balls = {lm.color for lm in load_landmark_map(s.landmark_path).of_kind("color")}
+        assert s.object_color not in balls and s.scenario.color == tuple(r.object_colors[s.object_color])
+        assert s.config.scenarios[s.object_name] == s.scenario  # what the simulator renders
+    assert {s.object_color for s in specs} == set(r.object_colors)
     assert len({s.config.room for s in specs}) == len(specs)  # every world looks different
     assert {s.config.room.floor_color for s in specs} == set(r.floor_colors)
     world = RandomWorld(specs[0])
@@ -234,6 +238,18 @@ def test_the_randomized_rooms_are_painted_in_no_colour_the_perception_looks_for(
         hsv = cv2.cvtColor(shades.reshape(1, -1, 3), cv2.COLOR_BGR2HSV)
         taken = [name for name, colour in PERCEPTION.colors.items() if color_mask(hsv, colour).any()]
         assert not taken, (bgr, taken)
+
+
+def test_every_object_paint_stays_in_its_colour_class_from_the_darkest_room_to_the_brightest():
+    """The object's paint (``object_colors``) is seen by its class in every light the randomizer
+    draws: from the shade of a side turned away from the light in the dimmest room (ambient times
+    exposure, lowest) to a lit side in the brightest, so the silhouette keeps its whole width."""
+    r = load_randomizer()
+    darkest = r.ambient[0] * r.exposure[0]
+    for name, bgr in r.object_colors.items():
+        shades = np.clip(np.outer(np.linspace(darkest, r.exposure[1], 64), bgr), 0, 255).astype(np.uint8)
+        hsv = cv2.cvtColor(shades.reshape(1, -1, 3), cv2.COLOR_BGR2HSV)
+        assert color_mask(hsv, PERCEPTION.colors[name]).all(), name
 
 
 # --- missions -------------------------------------------------------------------------------------

@@ -266,7 +266,8 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     landmarks = out / "landmarks.yaml"  # the run keeps the map it was given (a drawn layout's lives in a temporary folder)
     shutil.copyfile(spec.landmark_path, landmarks)
     override = out / "station.yaml"
-    override.write_text(yaml.safe_dump({"station": {"landmark_map": str(landmarks.resolve()), "resolution": resolution}}))
+    override.write_text(yaml.safe_dump({"station": {"landmark_map": str(landmarks.resolve()), "resolution": resolution},
+                                        "perception": {"object_color": spec.object_color}}))
     world = RandomWorld(spec, resolution=resolution)
     monitor = _ClearanceMonitor(world)
     renders: Dict[float, np.ndarray] = {}  # capture stamp -> true T_WC of every image the stand-in renders
