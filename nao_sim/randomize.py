@@ -31,7 +31,8 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   share U(``ambient``);
 * after the drawn layout, the object's finish: a highlight of gloss U(``object_gloss``) and
   shininess U(``object_shininess``) (Blinn-Phong, nao_sim/render.py); then its paint: one of
-  ``object_colors`` (a perception colour class and its lit BGR) that no ball of the map has,
+  ``object_colors`` (a perception colour class and its lit BGR), the next in their order when a
+  ball of the map has it,
   the station told it (``WorldSpec.object_color``: ``perception.object_color``).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
@@ -131,8 +132,7 @@ class WorldSpec:
                 "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error],
                 "shutter_ms": round(1e3 * noise.shutter, 1), "floor_color": list(self.config.room.floor_color),
                 "wall_color": list(self.config.room.wall_color), "light": [round(x, 2) for x in self.config.room.light],
-                "ambient": round(self.config.room.ambient, 2), "object_gloss": round(self.scenario.gloss, 2),
-                "object_shininess": round(self.scenario.shininess, 1)}
+                "ambient": round(self.config.room.ambient, 2), "object_finish": [round(x, 2) for x in self.scenario.finish or ()]}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -202,13 +202,14 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
         drawn = one_wall(drawn) if one_wall_only else drawn
         layout_name, landmark_path = f"drawn {drawn.kind}{', one wall' if one_wall_only else ''}", layout_file(drawn)
         config = config.with_layout(str(landmark_path), drawn.half_size)
-    scenario = dataclasses.replace(scenario, gloss=float(rng.uniform(*r.object_gloss)),
-                                   shininess=float(rng.uniform(*r.object_shininess)))
+    scenario = dataclasses.replace(scenario, finish=(float(rng.uniform(*r.object_gloss)), float(rng.uniform(*r.object_shininess))))
     balls = {lm.color for lm in load_landmark_map(landmark_path).of_kind("color")}
-    free = sorted(set(r.object_colors) - balls)
+    names = sorted(r.object_colors)
+    first = int(rng.integers(len(names)))  # then the next one no ball has: another map repaints only where a ball took it
+    free = [names[(first + i) % len(names)] for i in range(len(names)) if names[(first + i) % len(names)] not in balls]
     if not free:
-        raise ValueError(f"randomizer: every object colour {sorted(r.object_colors)} is a ball's in {landmark_path}")
-    object_color = free[int(rng.integers(len(free)))]
+        raise ValueError(f"randomizer: every object colour {names} is a ball's in {landmark_path}")
+    object_color = free[0]
     scenario = dataclasses.replace(scenario, color=tuple(int(c) for c in r.object_colors[object_color]))
     config = dataclasses.replace(config, scenarios={object_name: scenario})
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,

@@ -31,9 +31,9 @@ centre), each polygon projected with ``cv2.projectPoints`` and filled with sub-p
   |c + t d - s| = r at t = -d.(c - s) - sqrt((d.(c - s))^2 - |c - s|^2 + r^2) (unit d) takes the
   Lambert shade of the normal n = (c + t d - s) / r plus a Blinn-Phong highlight of white,
   ``BALL_GLOSS`` max(0, n . h)^``BALL_SHININESS``, h the unit half-vector of l and -d;
-* the object's finish (``Material``: its scenario's ``gloss`` and ``shininess``) adds the same
+* the object's finish (``Material``: its scenario's ``finish``, gloss and shininess) adds the same
   highlight, 255 gloss max(0, n . h)^shininess, to every pixel of a cylinder's side and to each face
-  of a box or a mesh (flat: n the face's normal, d the ray to its centre); 0 gloss: matte.
+  of a box or a mesh (flat: n the face's normal, d the ray to its centre); no finish: matte.
 
 Motion blur: the shutter is open from the camera orientation R_0 (``R_open``) to R_1 (the pose
 drawn). The camera's translation over an exposure (a few mm) is neglected; its rotation maps the
@@ -114,11 +114,11 @@ class Light:
 class Material:
     """A surface's highlight (``Light.highlight``): a share ``gloss`` of white, ``shininess`` its exponent."""
 
-    gloss: float = 0.0
-    shininess: float = 20.0
+    gloss: float
+    shininess: float
 
 
-MATTE = Material()
+MATTE = Material(0.0, 1.0)
 BALL = Material(BALL_GLOSS, BALL_SHININESS)
 
 
@@ -518,7 +518,7 @@ class Renderer:
         self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
         light = Light.of(room)
-        material = Material(scenario.gloss, scenario.shininess)
+        material = MATTE if scenario.finish is None else Material(*scenario.finish)
         self._items: List = [
             _MeshSolid(*p.world_mesh(scenario.position, scenario.yaw), scenario.color, light, material) if p.shape == "mesh"
             else _Cylinder(p.world_points(scenario.position, scenario.yaw), scenario.color, light, material)

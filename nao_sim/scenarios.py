@@ -112,8 +112,8 @@ class Scenario:
     start_distance: Tuple[float, float] = field(metadata=bounds(0.3, 3.0))  # m
     start_azimuth: Tuple[float, float] = field(metadata=bounds(-2 * math.pi, 2 * math.pi))  # rad, seen from the object
     start_heading_sigma: float = field(metadata=bounds(0.0, 1.0))  # rad
-    gloss: float = field(default=0.0, metadata=bounds(0.0, 1.0))  # share of white in its highlight (Blinn-Phong)
-    shininess: float = field(default=20.0, metadata=bounds(1.0, 1000.0))  # the highlight's exponent: larger, smaller
+    finish: Optional[Tuple[float, float]] = field(default=None, metadata=bounds(0.0, 1000.0))  # (gloss, shininess) of
+                                           # a Blinn-Phong highlight, gloss the share of white (nao_sim/render.py); None: matte
 
     def __post_init__(self) -> None:
         if not self.parts:

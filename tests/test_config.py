@@ -101,7 +101,7 @@ def _defaulted_fields(cls: type, path: str, seen: set) -> list:
 
 # Not defaults of a config file: the transport is built from command-line flags (nao_core.transport),
 # and a scenario part's yaw and mesh are optional per part (a cylinder has neither).
-NOT_FROM_A_FILE = ("bridge.transport", "sim.scenarios.parts.yaw", "sim.scenarios.parts.mesh")
+NOT_FROM_A_FILE = ("bridge.transport", "sim.scenarios.parts.yaw", "sim.scenarios.parts.mesh", "sim.scenarios.finish")
 
 
 def test_defaults_live_in_the_yaml_files_only():

@@ -219,13 +219,13 @@ def test_a_cylinder_side_is_shaded_by_the_normal_at_each_column(azimuth):
 
 
 def test_a_glossy_can_adds_the_blinn_phong_highlight_of_each_pixel_s_normal_to_its_shade():
-    """An object's ``gloss`` and ``shininess`` (Scenario) add white in the share Blinn-Phong gives
+    """An object's ``finish`` (Scenario: gloss, shininess) adds white in the share Blinn-Phong gives
     (render.py): at every inside pixel of a row, glossy minus matte is 255 gloss max(0, n . h)^s, h
     the half-vector of the light and the pixel's ray; the outline stays where it was."""
     intr = ROBOT.camera.intrinsics("vga")
     room = dataclasses.replace(CONFIG.room, light=(-0.95, 0.1, 0.3))  # low, from behind the camera
-    matte = dataclasses.replace(CONFIG.scenario("can"), position=(1.5, 0.03), gloss=0.0)
-    glossy = dataclasses.replace(matte, gloss=0.8, shininess=8.0)
+    matte = dataclasses.replace(CONFIG.scenario("can"), position=(1.5, 0.03), finish=None)
+    glossy = dataclasses.replace(matte, finish=(0.8, 8.0))
     quiet = dict(pixel_sigma=0.0, gain_sigma=0.0, seed=0)
     images = [Renderer(intr, room, LandmarkMap(()), sc, **quiet).render(CAMERA_AT_ORIGIN, 0).astype(float)
               for sc in (matte, glossy)]
@@ -246,7 +246,8 @@ def test_a_glossy_can_adds_the_blinn_phong_highlight_of_each_pixel_s_normal_to_i
     normals = np.column_stack([(c + t[:, None] * d) / r, np.zeros(len(columns))])
     halfway = Light.of(room).direction - rays
     halfway /= np.linalg.norm(halfway, axis=1, keepdims=True)
-    expected = 255.0 * glossy.gloss * np.maximum(0.0, np.sum(normals * halfway, axis=1)) ** glossy.shininess
+    gloss, shininess = glossy.finish
+    expected = 255.0 * gloss * np.maximum(0.0, np.sum(normals * halfway, axis=1)) ** shininess
     added = images[1][row, columns, 0] - images[0][row, columns, 0]  # blue: far from 255 in either
     assert expected.max() > 60.0 and expected.min() < 0.5 * expected.max()  # a highlight, brighter in its middle
     assert np.abs(added - expected).max() < 1.5, np.abs(added - expected).max()

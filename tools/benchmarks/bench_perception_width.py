@@ -54,11 +54,11 @@ def renderer_fattening_px(polygons: int = 200, seed: int = 0) -> float:
 
 
 def width_errors(resolution: str, views: int = VIEWS, floor: Optional[tuple] = None, unmixing: Optional[str] = None,
-                 light_elevation: Optional[float] = None, finish: Tuple[float, float] = (0.0, 20.0)) -> dict:
+                 light_elevation: Optional[float] = None, finish: Optional[Tuple[float, float]] = None) -> dict:
     """Bearing and width errors (rad) over ``views`` simulator frames, the camera's f_x and each mask's
     share of holes (pixels inside its outer outline but off the mask); ``floor`` (BGR) repaints the
     room's floor, ``unmixing`` replaces the configured ``edge_unmixing``, ``light_elevation`` (rad)
-    moves the light to that elevation from azimuth 0, ``finish`` is the can's (gloss, shininess)."""
+    moves the light to that elevation from azimuth 0, ``finish`` is the can's (gloss, shininess), None: matte."""
     robot = load_robot_model()
     params = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
     if unmixing is not None:
@@ -69,7 +69,7 @@ def width_errors(resolution: str, views: int = VIEWS, floor: Optional[tuple] = N
     if light_elevation is not None:
         light = (math.cos(light_elevation), 0.0, math.sin(light_elevation))
         config = dataclasses.replace(config, room=dataclasses.replace(config.room, light=light))
-    can = dataclasses.replace(config.scenario("can"), gloss=finish[0], shininess=finish[1])
+    can = dataclasses.replace(config.scenario("can"), finish=finish)
     world = SimWorld(can, robot, resolution, seed=3, config=config)
     intr = robot.camera.intrinsics(resolution)
     camera = CameraModel(K=intr.K, dist=np.asarray(intr.dist, dtype=float), width=intr.width, height=intr.height)
@@ -117,7 +117,7 @@ def run() -> str:
                       f"{arcmin[configured].max() / arcmin['projection'].max():.2f} |")
     finishes = []
     for elevation in (0.25, 0.6):
-        w = {g: width_errors("vga", light_elevation=elevation, finish=(g, GLOSSY_SHININESS)) for g in (GLOSSY, 0.0)}
+        w = {g: width_errors("vga", light_elevation=elevation, finish=(g, GLOSSY_SHININESS) if g else None) for g in (GLOSSY, 0.0)}
         arcmin = {g: np.degrees(np.abs(r["width"])) * 60.0 for g, r in w.items()}
         finishes.append(f"| {math.degrees(elevation):.0f} | {np.median(arcmin[GLOSSY]):.2f} / {np.median(arcmin[0.0]):.2f} | "
                         f"{arcmin[GLOSSY].max():.2f} / {arcmin[0.0].max():.2f} | "
