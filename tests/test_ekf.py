@@ -173,6 +173,18 @@ def test_floor_depression_jacobian_equals_finite_differences(xo, yo, r, cx, cy, 
     np.testing.assert_allclose(analytic, numeric, atol=1e-6)
 
 
+def floored_starts(params, views):
+    """Each first view's start with its floor contact: its NEES and its centre error over the range."""
+    nees, errors = [], []
+    for view in views:
+        ekf = ObjectEKF(params)
+        assert ekf.initialize(view.cam, view.phi, view.delta, view.floor).accepted
+        err = ekf.x - view.truth
+        nees.append(err @ np.linalg.solve(ekf.P, err))
+        errors.append(math.hypot(*err[:2]) / math.hypot(*view.truth[:2]))
+    return np.array(nees), np.array(errors)
+
+
 def test_a_floor_contact_starts_the_range_consistently():
     """Monte Carlo, the model matched to the truth (radius drawn from the prior, a cylinder: no shape
     term): a first view with its floor contact (phi, delta, depression with their noise) starts the
@@ -180,13 +192,9 @@ def test_a_floor_contact_starts_the_range_consistently():
     the radius prior alone leaves the range as uncertain as the radius."""
     params = dataclasses.replace(PARAMS, radius_prior_std=0.02, floor_shape_std=0.0)  # 5 sigma from r = 0
     views = first_views(params, 400, seed=7)
-    nees, errors, unfloored = [], [], []
+    nees, errors = floored_starts(params, views)
+    unfloored = []
     for view in views:
-        ekf = ObjectEKF(params)
-        assert ekf.initialize(view.cam, view.phi, view.delta, view.floor).accepted
-        err = ekf.x - view.truth
-        nees.append(err @ np.linalg.solve(ekf.P, err))
-        errors.append(math.hypot(*err[:2]) / math.hypot(*view.truth[:2]))
         bare = ObjectEKF(params)
         bare.initialize(view.cam, view.phi, view.delta)
         unfloored.append(math.sqrt(np.linalg.eigvalsh(bare.P[:2, :2])[-1]) / math.hypot(*view.truth[:2]))
@@ -203,13 +211,7 @@ def test_a_thin_object_starts_from_its_floor_contact_where_the_radius_prior_woul
     centre within 8 % of the range (median; measured 4.4 %, 453 % from the prior's start), never
     metres off, with a covariance that does not claim more than it has (NEES not above its band)."""
     views = first_views(PARAMS, 400, seed=11, radii=(0.012, 0.025), ranges=(0.6, 1.6))
-    nees, errors = [], []
-    for view in views:
-        ekf = ObjectEKF(PARAMS)
-        assert ekf.initialize(view.cam, view.phi, view.delta, view.floor).accepted
-        err = ekf.x - view.truth
-        nees.append(err @ np.linalg.solve(ekf.P, err))
-        errors.append(math.hypot(*err[:2]) / math.hypot(*view.truth[:2]))
+    nees, errors = floored_starts(PARAMS, views)
     assert np.median(errors) < 0.08 and max(errors) < 0.6, (np.median(errors), max(errors))
     assert np.mean(nees) < chi2.ppf(0.975, 3 * len(views)) / len(views), np.mean(nees)
 
