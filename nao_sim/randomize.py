@@ -31,9 +31,8 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   share U(``ambient``);
 * after the drawn layout, the object's finish: a highlight of gloss U(``object_gloss``) and
   shininess U(``object_shininess``) (Blinn-Phong, nao_sim/render.py); then its paint: one of
-  ``object_colors`` (a perception colour class and its lit BGR), the next in their order when a
-  ball of the map has it,
-  the station told it (``WorldSpec.object_color``: ``perception.object_color``).
+  ``object_colors`` (a perception colour class and its lit BGR), or the next in their order that
+  no ball of the map has; the station is told it (``WorldSpec.object_color``: ``perception.object_color``).
 
 The frames reach the bridge in YUV422 (the bridge's default NAOqi colour space), RGB from a bare NAOqi.
 """

@@ -100,8 +100,7 @@ class Light:
     def highlight(self, normals: np.ndarray, rays: np.ndarray, material: "Material") -> np.ndarray:
         """Blinn-Phong: gloss max(0, n . h)^shininess, h the unit half-vector of l and -d, of unit
         normals and unit ray directions d (from the camera), both (..., 3); the share of white added."""
-        halfway = self.direction - rays
-        halfway = halfway / np.maximum(np.linalg.norm(halfway, axis=-1, keepdims=True), 1e-12)
+        halfway = _unit(self.direction - rays)
         return material.gloss * np.maximum(0.0, np.sum(normals * halfway, axis=-1)) ** material.shininess
 
     def shade(self, color: Sequence[int], normal: np.ndarray) -> Tuple[int, int, int]:
