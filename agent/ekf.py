@@ -503,6 +503,14 @@ def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Op
     return fused
 
 
+def _contact_variance(floor: FloorContact, params: EKFParams, radius: float) -> float:
+    """R of a floor contact's depression for an object of ``radius`` (docs/estimation.md, "Floor
+    contact"): floor_angle_std^2 + (h / (h^2 + d_f^2) floor_shape_std r)^2, d_f = h / tan(theta)."""
+    distance = floor.height / math.tan(floor.depression)
+    slope = floor.height / (floor.height**2 + distance**2)
+    return params.floor_angle_std**2 + (slope * params.floor_shape_std * radius) ** 2
+
+
 def _floor_start(params: EKFParams, cam: np.ndarray, phi: float, size: float, d_size: float,
                  floor: FloorContact) -> Optional[State]:
     """The start from a width and its floor contact (docs/estimation.md, "Floor contact"), the radius
@@ -513,7 +521,7 @@ def _floor_start(params: EKFParams, cam: np.ndarray, phi: float, size: float, d_
     + s^2), and at h / tan(theta) from the camera, so::
 
         y0 = (psi + phi, k tan(theta) / h, s),  P_y0 = G diag(s_phi^2, s_delta^2, R_theta) G^T,
-        G = dy0 / d(phi, delta, theta),  R_theta = floor_angle_std^2 + (h / (h^2 + d_f^2) floor_shape_std r)^2.
+        G = dy0 / d(phi, delta, theta),  R_theta: ``_contact_variance`` at r = s / rho.
 
     From the prior, the range is Gaussian in rho = s / r0 with a 100 % std, and a thin object's true
     rho lies in its tail: a 2 cm radius at 1 m is 4 std out, the contact fails the gate and the
@@ -523,9 +531,7 @@ def _floor_start(params: EKFParams, cam: np.ndarray, phi: float, size: float, d_
     h, theta = floor.height, floor.depression
     t, k = math.tan(theta), math.sqrt(1.0 - 2.0 * size * math.cos(phi) + size**2)
     rho = k * t / h
-    distance = h / t
-    slope = h / (h**2 + distance**2)
-    R_theta = params.floor_angle_std**2 + (slope * params.floor_shape_std * size / rho) ** 2
+    R_theta = _contact_variance(floor, params, size / rho)
     G = np.array([[1.0, 0.0, 0.0],
                   [t / h * size * math.sin(phi) / k, t / h * (size - math.cos(phi)) / k * d_size, k / (h * math.cos(theta) ** 2)],
                   [0.0, d_size, 0.0]])
@@ -549,10 +555,9 @@ def _with_floor(state: State, cam: np.ndarray, floor: FloorContact, params: EKFP
     with R = floor_angle_std^2 + (|d theta / d d| floor_shape_std r)^2, r the radius the contact and
     the state's angular size give; ``state`` itself when the contact fails the gate."""
     x = state.cartesian()[0]
-    distance = floor.height / math.tan(floor.depression)
     size = x[2] / math.hypot(x[0] - cam[0], x[1] - cam[1])
-    slope = floor.height / (floor.height**2 + distance**2)
-    R = np.array([[params.floor_angle_std**2 + (slope * params.floor_shape_std * size * distance / (1.0 - size)) ** 2]])
+    distance = floor.height / math.tan(floor.depression)
+    R = np.array([[_contact_variance(floor, params, size * distance / (1.0 - size))]])
 
     def model(m: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         point, J = state.point(m)

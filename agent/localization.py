@@ -659,6 +659,18 @@ def _pose_of(v: np.ndarray) -> np.ndarray:
     return np.stack([x, y, np.arctan2(s, c)], axis=-1)
 
 
+def check_ball_colours(landmark_map: LandmarkMap, perception: PerceptionParams) -> None:
+    """ValueError naming the first colour landmark whose colour is no perception class, or the
+    object's: its ball would be taken for the object (docs/landmarks.md, "Colours")."""
+    for lm in landmark_map.of_kind("color"):
+        if lm.color not in perception.colors:
+            raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class "
+                             f"({sorted(perception.colors)})")
+        if lm.color == perception.object_color:
+            raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is the object's (perception.object_color): "
+                             "its ball would be taken for the object; use another colour")
+
+
 class LandmarkDetector:
     """Image points of the map's landmarks in one frame: ArUco corners and colour blobs."""
 
@@ -679,9 +691,8 @@ class LandmarkDetector:
         self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
         self.colors: Dict[str, List[Landmark]] = {}
         if perception is not None:
+            check_ball_colours(landmark_map, perception)
             for lm in landmark_map.of_kind("color"):
-                if lm.color not in perception.colors:
-                    raise ValueError(f"landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class")
                 self.colors.setdefault(str(lm.color), []).append(lm)
         self.color_landmarks = [lm for lms in self.colors.values() for lm in lms]
         self.shaded: Dict[str, ColorClass] = {}  # each class with its value floor lowered to a ball's shade (``_balls``)

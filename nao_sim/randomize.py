@@ -205,10 +205,9 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     balls = {lm.color for lm in load_landmark_map(landmark_path).of_kind("color")}
     names = sorted(r.object_colors)
     first = int(rng.integers(len(names)))  # then the next one no ball has: another map repaints only where a ball took it
-    free = [names[(first + i) % len(names)] for i in range(len(names)) if names[(first + i) % len(names)] not in balls]
-    if not free:
+    object_color = next((name for name in names[first:] + names[:first] if name not in balls), None)
+    if object_color is None:
         raise ValueError(f"randomizer: every object colour {names} is a ball's in {landmark_path}")
-    object_color = free[0]
     scenario = dataclasses.replace(scenario, color=tuple(int(c) for c in r.object_colors[object_color]))
     config = dataclasses.replace(config, scenarios={object_name: scenario})
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,

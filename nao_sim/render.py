@@ -125,6 +125,11 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
+def _whitened(color: Tuple[int, ...], white: float) -> Tuple[int, ...]:
+    """A flat colour plus a share ``white`` of white (a highlight), clipped at 255."""
+    return tuple(int(min(255, round(c + 255.0 * white))) for c in color)
+
+
 class _View:
     """One camera pose: world-to-camera transform and projection."""
 
@@ -242,8 +247,8 @@ class _Solid:
         _fill_hull(image, view, self.points_W, self.hull_color)
         for face, normal, color in self.faces:
             if np.dot(normal, view.centre - face[0]) > 1e-9:
-                white = 255.0 * float(self.light.highlight(normal, _unit(face.mean(axis=0) - view.centre), self.material))
-                _fill_hull(image, view, face, tuple(int(min(255, round(c + white))) for c in color))
+                white = float(self.light.highlight(normal, _unit(face.mean(axis=0) - view.centre), self.material))
+                _fill_hull(image, view, face, _whitened(color, white))
 
 
 class _MeshSolid:
@@ -319,8 +324,8 @@ class _Cylinder:
         _fill_hull(image, view, self.points_W, lambda *roi: self._side(view, *roi))
         if view.centre[2] > self.top[0, 2]:
             up, centre = np.array([0.0, 0.0, 1.0]), self.top.mean(axis=0)
-            white = 255.0 * float(self.light.highlight(up, _unit(centre - view.centre), self.material))
-            _fill_hull(image, view, self.top, tuple(int(min(255, round(c + white))) for c in self.top_color))
+            white = float(self.light.highlight(up, _unit(centre - view.centre), self.material))
+            _fill_hull(image, view, self.top, _whitened(self.top_color, white))
 
     def _side(self, view: _View, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """The shaded side's colour at each pixel of the ROI (rows x columns x 3)."""

@@ -26,7 +26,7 @@ from typing import Any, Dict, Literal, Sequence, Tuple, Union
 from agent.carving import CarvingParams
 from agent.head_servo import HeadServoParams
 from agent.ekf import EKFParams
-from agent.localization import LocalizationParams
+from agent.localization import LocalizationParams, check_ball_colours
 from agent.mission import MissionParams
 from agent.perception import PerceptionParams
 from agent.planner import PlannerParams
@@ -104,20 +104,11 @@ def load_station_config(overrides: Sequence[Union[str, Path]] = ()) -> StationCo
     map_path = Path(sections["station"].landmark_map)
     map_path = map_path if map_path.is_absolute() else CONFIG_DIR / map_path
     landmarks = load_landmark_map(map_path)
-    _check_ball_colours(landmarks, sections["perception"], map_path)
+    try:
+        check_ball_colours(landmarks, sections["perception"])
+    except ValueError as exc:
+        raise ConfigError(f"{map_path}: {exc}") from None
     return StationConfig(landmarks=landmarks, overrides=tuple(paths), **sections)
-
-
-def _check_ball_colours(landmarks: LandmarkMap, perception: PerceptionParams, map_path: Path) -> None:
-    """Every colour landmark's colour is a perception class other than the object's: a ball of the
-    object's colour would be taken for the object (docs/landmarks.md, "Colours")."""
-    for lm in landmarks.of_kind("color"):
-        if lm.color not in perception.colors:
-            raise ConfigError(f"{map_path}: landmark {lm.id!r}: colour {lm.color!r} is not a perception colour class "
-                              f"({sorted(perception.colors)})")
-        if lm.color == perception.object_color:
-            raise ConfigError(f"{map_path}: landmark {lm.id!r}: colour {lm.color!r} is the object's "
-                              "(perception.object_color): its ball would be taken for the object; use another colour")
 
 
 def _top_level(path: Path) -> Dict[str, Any]:
