@@ -48,7 +48,7 @@ matrix: $(STAMP)
 
 # The same missions in harsher worlds (config/stress.yaml: every range widened), seeds 300 on; to the
 # stress section of docs/benchmarks.md. What breaks first, not a promise.
-STRESS_COUNT ?= 16
+STRESS_COUNT ?= 24
 stress: $(STAMP)
 	$(PY) -m tools.matrix --ranges config/stress.yaml --count $(STRESS_COUNT) --first-seed 300 --out runs/stress --doc docs/benchmarks.md
 
