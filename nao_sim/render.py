@@ -280,12 +280,10 @@ class _MeshSolid:
         uv[in_front] = view.project(points_C[in_front])
         faces = self.faces[facing]
         order = np.argsort(np.linalg.norm(self.centroids[facing] - view.centre, axis=1))[::-1]
-        used = uv[np.unique(faces)]
-        h, w = image.shape[:2]
-        x0, y0 = (max(int(np.floor(v)), 0) for v in used.min(axis=0))
-        x1, y1 = min(int(np.ceil(used[:, 0].max())) + 1, w), min(int(np.ceil(used[:, 1].max())) + 1, h)
-        if x1 <= x0 or y1 <= y0:
+        box = _pixel_box(uv[np.unique(faces)], image.shape, 0)
+        if box is None:
             return
+        x0, y0, x1, y1 = box
         size = ((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE)
         paint, cover = np.zeros(size + (3,), np.uint8), np.zeros(size, np.uint8)
         sub = _fixed((uv - np.float64([x0, y0]) + 0.5) * SUPERSAMPLE - 0.5)
@@ -299,8 +297,7 @@ class _MeshSolid:
         alpha = cv2.resize(cover, area, interpolation=cv2.INTER_AREA).astype(np.float32)[..., None] / 255.0
         # the mean colour over covered sub-pixels: paint is black where uncovered
         colour = cv2.resize(paint, area, interpolation=cv2.INTER_AREA).astype(np.float32) / np.maximum(alpha, 1e-6)
-        roi = image[y0:y1, x0:x1]
-        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + colour * alpha), 0, 255)
+        _blend(image[y0:y1, x0:x1], alpha, colour * alpha)
 
 
 class _Cylinder:
@@ -430,12 +427,10 @@ class _ColourBall:
         cube_C = view.to_camera(self.cube_W)
         if cube_C[:, 2].min() < NEAR:
             return
-        uv = view.project(cube_C)  # the cube's projection holds the ball's
-        h, w = image.shape[:2]
-        x0, y0 = (max(int(np.floor(v)) - 1, 0) for v in uv.min(axis=0))
-        x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 2, w), min(int(np.ceil(uv[:, 1].max())) + 2, h)
-        if x1 <= x0 or y1 <= y0:
+        box = _pixel_box(view.project(cube_C), image.shape, 1)  # the cube's projection holds the ball's
+        if box is None:
             return
+        x0, y0, x1, y1 = box
         S = BALL_SUPERSAMPLE
         size = ((x1 - x0) * S, (y1 - y0) * S)  # sub-pixel J's centre: x0 - 1/2 + (J + 1/2) / S, as cv2.resize maps
         x = cv2.resize(view.ray_x[y0:y1, x0:x1], size, interpolation=cv2.INTER_LINEAR).astype(np.float64)
@@ -454,8 +449,23 @@ class _ColourBall:
         area = (x1 - x0, y1 - y0)
         alpha = cv2.resize(hit.astype(np.float32), area, interpolation=cv2.INTER_AREA)[..., None]
         covered = cv2.resize((np.minimum(paint, 255.0) * hit[..., None]).astype(np.float32), area, interpolation=cv2.INTER_AREA)
-        roi = image[y0:y1, x0:x1]
-        roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + covered), 0, 255)  # covered: the ball's colour times its coverage
+        _blend(image[y0:y1, x0:x1], alpha, covered)
+
+
+
+def _pixel_box(uv: np.ndarray, shape: Tuple[int, ...], pad: int) -> Optional[Tuple[int, int, int, int]]:
+    """(x0, y0, x1, y1): the pixels (end exclusive) that cover the points ``uv`` grown by ``pad``
+    pixels a side, clipped to the image; None when nothing of it is inside."""
+    h, w = shape[:2]
+    x0, y0 = (max(int(np.floor(v)) - pad, 0) for v in uv.min(axis=0))
+    x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1 + pad, w), min(int(np.ceil(uv[:, 1].max())) + 1 + pad, h)
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+
+def _blend(roi: np.ndarray, alpha: np.ndarray, covered: np.ndarray) -> None:
+    """Over-composites a supersampled layer onto ``roi`` in place: roi (1 - alpha) + covered, with
+    alpha its coverage per pixel and covered its colour times that coverage (premultiplied)."""
+    roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + covered), 0, 255)
 
 
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
