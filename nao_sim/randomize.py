@@ -47,7 +47,7 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from nao_core.config import CONFIG_DIR, bounds, load
+from nao_core.config import CONFIG_DIR, ConfigError, bounds, load
 from nao_core.geometry import Pose
 from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
@@ -100,8 +100,16 @@ class Randomizer:
 
 
 def load_randomizer(overrides: Sequence[Union[str, Path]] = ()) -> Randomizer:
-    """The ``randomizer`` section of config/sim.yaml, merged with ``overrides`` (e.g. config/stress.yaml)."""
-    return load(Randomizer, [CONFIG_DIR / "sim.yaml", *overrides], section="randomizer")
+    """The ``randomizer`` section of config/sim.yaml, merged with ``overrides`` (e.g. config/stress.yaml);
+    ConfigError naming the files when an object is not a scenario of config/sim.yaml."""
+    files = [CONFIG_DIR / "sim.yaml", *overrides]
+    randomizer = load(Randomizer, files, section="randomizer")
+    known = load_sim_config().scenarios
+    unknown = [name for name in randomizer.objects if name not in known]
+    if unknown:
+        raise ConfigError(f"{' + '.join(map(str, files))}: randomizer.objects: {', '.join(map(repr, unknown))} "
+                          f"is not a scenario of config/sim.yaml (known: {', '.join(sorted(known))})")
+    return randomizer
 
 
 @dataclass(frozen=True)

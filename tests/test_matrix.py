@@ -196,6 +196,8 @@ def test_the_stress_ranges_reach_beyond_the_matrix_ranges():
         low, high = getattr(matrix, name), getattr(stress, name)
         if name == "drawn_layout":
             assert high.share > low.share and dataclasses.replace(high, share=low.share) == low
+        elif name == "objects":
+            assert set(high) > set(low)  # the matrix's objects and more
         elif isinstance(low, tuple):
             assert low[1] <= high[1] and high != low and (name != "start_distance" or high[0] < low[0]), name
         else:
@@ -213,6 +215,21 @@ def test_a_malformed_ranges_file_is_refused_by_name(tmp_path, capsys):
     assert stop.value.code == 2
     assert f"{bad}: randomizer.start_distance: expected a list of 2 items" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists() and not (tmp_path / "doc.md").exists()
+
+
+def test_a_ranges_file_naming_an_unknown_object_is_refused_by_name(tmp_path, capsys):
+    """An object that is no scenario of config/sim.yaml: exit 2 naming the file and the object before any
+    mission, not a KeyError when a world draws it."""
+    from tools.matrix import main
+
+    bad = tmp_path / "ranges.yaml"
+    bad.write_text("randomizer:\n  objects: [can, teapot]\n")
+    with pytest.raises(SystemExit) as stop:
+        main(["--ranges", str(bad), "--count", "1", "--out", str(tmp_path / "runs"), "--doc", str(tmp_path / "doc.md")])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "randomizer.objects: 'teapot' is not a scenario of config/sim.yaml" in err
+    assert not (tmp_path / "runs").exists()
 
 
 def test_one_wall_worlds_and_stress_ranges_are_not_mixed(tmp_path, capsys):
