@@ -261,6 +261,11 @@ class FloorContact:
     depression: float
     height: float
 
+    @property
+    def distance(self) -> float:
+        """m: where that ray meets the floor, horizontally from the camera (h / tan(depression))."""
+        return self.height / math.tan(self.depression)
+
     def valid(self) -> bool:
         return math.isfinite(self.depression) and 0.0 < self.depression < 0.5 * math.pi and math.isfinite(self.height) and self.height > 0.0
 
@@ -506,8 +511,7 @@ def initial_state(params: EKFParams, cam: Sequence[float], phi: float, delta: Op
 def _contact_variance(floor: FloorContact, params: EKFParams, radius: float) -> float:
     """R of a floor contact's depression for an object of ``radius`` (docs/estimation.md, "Floor
     contact"): floor_angle_std^2 + (h / (h^2 + d_f^2) floor_shape_std r)^2, d_f = h / tan(theta)."""
-    distance = floor.height / math.tan(floor.depression)
-    slope = floor.height / (floor.height**2 + distance**2)
+    slope = floor.height / (floor.height**2 + floor.distance**2)
     return params.floor_angle_std**2 + (slope * params.floor_shape_std * radius) ** 2
 
 
@@ -556,8 +560,7 @@ def _with_floor(state: State, cam: np.ndarray, floor: FloorContact, params: EKFP
     the state's angular size give; ``state`` itself when the contact fails the gate."""
     x = state.cartesian()[0]
     size = x[2] / math.hypot(x[0] - cam[0], x[1] - cam[1])
-    distance = floor.height / math.tan(floor.depression)
-    R = np.array([[_contact_variance(floor, params, size * distance / (1.0 - size))]])
+    R = np.array([[_contact_variance(floor, params, size * floor.distance / (1.0 - size))]])
 
     def model(m: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         point, J = state.point(m)

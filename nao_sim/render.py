@@ -130,6 +130,21 @@ def _whitened(color: Tuple[int, ...], white: float) -> Tuple[int, ...]:
     return tuple(int(min(255, round(c + 255.0 * white))) for c in color)
 
 
+def _pixel_box(uv: np.ndarray, shape: Tuple[int, ...], pad: int) -> Optional[Tuple[int, int, int, int]]:
+    """(x0, y0, x1, y1): the pixels (end exclusive) that cover the points ``uv`` grown by ``pad``
+    pixels a side, clipped to the image; None when nothing of it is inside."""
+    h, w = shape[:2]
+    x0, y0 = (max(int(np.floor(v)) - pad, 0) for v in uv.min(axis=0))
+    x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1 + pad, w), min(int(np.ceil(uv[:, 1].max())) + 1 + pad, h)
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+
+def _blend(roi: np.ndarray, alpha: np.ndarray, covered: np.ndarray) -> None:
+    """Over-composites a supersampled layer onto ``roi`` in place: roi (1 - alpha) + covered, with
+    alpha its coverage per pixel and covered its colour times that coverage (premultiplied)."""
+    roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + covered), 0, 255)
+
+
 class _View:
     """One camera pose: world-to-camera transform and projection."""
 
@@ -450,22 +465,6 @@ class _ColourBall:
         alpha = cv2.resize(hit.astype(np.float32), area, interpolation=cv2.INTER_AREA)[..., None]
         covered = cv2.resize((np.minimum(paint, 255.0) * hit[..., None]).astype(np.float32), area, interpolation=cv2.INTER_AREA)
         _blend(image[y0:y1, x0:x1], alpha, covered)
-
-
-
-def _pixel_box(uv: np.ndarray, shape: Tuple[int, ...], pad: int) -> Optional[Tuple[int, int, int, int]]:
-    """(x0, y0, x1, y1): the pixels (end exclusive) that cover the points ``uv`` grown by ``pad``
-    pixels a side, clipped to the image; None when nothing of it is inside."""
-    h, w = shape[:2]
-    x0, y0 = (max(int(np.floor(v)) - pad, 0) for v in uv.min(axis=0))
-    x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1 + pad, w), min(int(np.ceil(uv[:, 1].max())) + 1 + pad, h)
-    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
-
-
-def _blend(roi: np.ndarray, alpha: np.ndarray, covered: np.ndarray) -> None:
-    """Over-composites a supersampled layer onto ``roi`` in place: roi (1 - alpha) + covered, with
-    alpha its coverage per pixel and covered its colour times that coverage (premultiplied)."""
-    roi[...] = np.clip(np.rint(roi * (1.0 - alpha) + covered), 0, 255)
 
 
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
