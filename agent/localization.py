@@ -149,16 +149,31 @@ R_k-1) of the previous rejected one's (then the prior is wrong: re-localize). Re
 scatter (far, low markers whose lateral offset trades against an unmodelled torso roll) are noise,
 and never overturn a prior they all disagree with. Every frame without a fix leaves its reason in ``no_fix_reason``.
 
-Odometry: the pose is W <- odometry-frame correction C composed with the odometry pose,
-p = C (+) o. A forward odometry step d (in the robot frame, length l and turn |dtheta|) grows
+Odometry: the pose is W <- odometry-frame correction C composed with the scaled odometry pose,
+p = C (+) o'. The walk's speed and turn are off by scales s = (s_x, s_y, s_w) (a few percent on a NAO,
+the same for a whole walk: the surface, the gait), so each odometry step d = (dx, dy, dtheta) (robot
+frame, length l) is integrated as S d = (s_x dx, s_y dy, s_w dtheta) into o', and s is estimated with
+the pose: the state is (p, s), its covariance P_a = [[P, P_ps], [P_sp, P_s]], with the prior
+P_s = diag(k_s^2, k_s^2, k_w^2) (``odom_scale_error``, ``odom_turn_scale_error``). A step grows
 
-    P <- F P F^T + G Q G^T,
-    Q = diag(k_t^2 l + k_s^2 ((L + l)^2 - L^2) (twice),  k_r^2 (l + |dtheta|) + k_w^2 ((A + |dtheta|)^2 - A^2)),
+    P_a <- Phi P_a Phi^T + diag(G Q G^T, Q_s),   Phi = [[F, B], [0, I]],
+    F = [[1, 0, -Dy], [0, 1, Dx], [0, 0, 1]],   B = dp/ds = [[c dx, -s dy, 0], [s dx, c dy, 0], [0, 0, dtheta]],
+    Q = diag(k_t^2 l (twice), k_r^2 (l + |dtheta|)),   Q_s = k_d^2 (l + |dtheta|) I,
 
-where L and A are the distance walked and the angle turned since the last fix: the random walk
-(k_t, k_r) grows the variance linearly, the walk's speed and turn scale errors (k_s, k_w: a few
-percent on a NAO, the same all along) grow the std linearly, so P after L metres holds
-k_t^2 L + k_s^2 L^2 and ``position_std()`` says what dead reckoning is worth.
+with (Dx, Dy) = R(theta) (s_x dx, s_y dy) the step in W, (c, s) of the heading theta, G = R(theta):
+the random walk (k_t, k_r) grows the variance linearly, the scale error (through B, summed over the
+walk) the std linearly, so P after L metres from a first fix holds k_t^2 L + k_s^2 L^2 and
+``position_std()`` says what dead reckoning is worth; the scale drifts by k_d per sqrt(m + rad)
+(``odom_scale_drift``: it is not the same on every floor and gait). A fix measures p alone, so
+whatever it does to p (the Kalman update or the conditioned fix below: prior P, posterior P+ and
+shift dp) it does to s through their correlation, L = P_sp P^-1:
+
+    s <- s + L dp,   P_sp <- L P+,   P_s <- P_s - L (P - P+) L^T,
+
+which is the Kalman update of the whole state with the gain [K; L K]. Successive fixes with a walk
+between them teach s: the dead reckoning between sparse fixes, whose error the object filter
+cannot average out (docs/benchmarks.md, stress world 315), then drifts by the random walk and what
+is left of the scale error. s is kept within ``SCALE_BOUNDS``.
 
 and a fix is fused as a Kalman update with identity measurement and the covariance the gate
 judged it by, R + F: K = P (P + R + F)^-1, p <- p + K wrap(z - p), P <- (I - K) P, then
@@ -198,6 +213,8 @@ the same gain K, whose pose estimates are unchanged:
     odometry:   P_t <- F P_t F^T + G Q G^T,  X <- F X
     fix:        A = I - K,  P_t <- A P_t A^T + A X (K G)^T + K G X^T A^T + K G Sigma G^T K^T + K R K^T,
                 X <- A X + K G Sigma
+
+each with the scales' rows (Phi for F, [K; L K] for K: P_t and X are kept for (p, s) as P_a is).
 
 P_t is what the object filter weighs the camera pose by (docs/estimation.md, "Pose uncertainty");
 P, what more fixes can reduce, drives the landmark lookout.
@@ -315,6 +332,7 @@ class LocalizationParams:
     odom_rotation_noise: float = field(metadata=bounds(0.0, 1.0))  # k_r, rad per sqrt(m + rad)
     odom_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_s, std of the walk's speed scale error
     odom_turn_scale_error: float = field(metadata=bounds(0.0, 1.0))  # k_w, std of the turn scale error
+    odom_scale_drift: float = field(metadata=bounds(0.0, 1.0))  # k_d, the scales' random walk per sqrt(m + rad)
     aruco_corner_refinement: Literal["none", "subpix", "contour"]
     aruco_edge_refinement: bool  # corners as the intersections of the marker's edge lines (agent/marker_corners.py)
     aruco_detection_width: int = field(metadata=bounds(160, 10000))  # px, detect markers on an image at most this wide
@@ -379,6 +397,7 @@ _CORNER_REFINEMENT = {
 }
 Box = Tuple[int, int, int, int, float, int]  # x0, y0, x1, y1 (full-size px), smallest predicted marker side, markers predicted
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+SCALE_BOUNDS = (0.7, 1.3)  # the odometry scales s are kept within these (a NAO's walk is off by a few percent)
 MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
 
 
@@ -956,11 +975,14 @@ class RobotLocalizer:
         self.detector = LandmarkDetector(params, landmark_map, perception_params)
         # the floor the colour balls enclose (agent/keep_in.py): a cold hypothesis outside it is behind a wall
         self._balls = KeepIn(LandmarkMap(tuple(lm for lm in landmark_map.landmarks if lm.kind == "color")))
-        self._correction: Optional[Pose] = None  # W <- odometry frame
-        self.covariance = np.full((3, 3), np.nan)
+        self._correction: Optional[Pose] = None  # W <- scaled odometry frame
+        self.scale = np.ones(3)  # (s_x, s_y, s_w) of the walk (module docstring, Odometry)
+        k_s, k_w = params.odom_scale_error, params.odom_turn_scale_error
+        # of (pose, scale): P_a, and the same with the intrinsics' share (module docstring)
+        self._augmented = _unknown_pose(np.diag([k_s, k_s, k_w]) ** 2)
+        self._augmented_total = self._augmented.copy()
         self._intrinsics_covariance = np.zeros((4, 4))  # of (s_x, s_y, d_u, d_v): what the camera's K may be off by
-        self.total_covariance = np.full((3, 3), np.nan)  # the pose's, with the intrinsics' share (module docstring)
-        self._intrinsics_cross = np.zeros((3, 4))  # Cov(pose error, intrinsics error)
+        self._intrinsics_cross = np.zeros((6, 4))  # Cov((pose, scale) error, intrinsics error)
         self.rejected_jumps = 0
         self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
@@ -972,9 +994,9 @@ class RobotLocalizer:
         self._tilt_prior = np.zeros((5, 5))  # its information, pixel units
         self._reported_T_BC = np.eye(4)  # the frame's T_BC before the tilt correction
         self.landmarks_seen = 0  # map markers and landmark-coloured blobs in the last frame (for failure reasons)
-        self._odom: Optional[Pose] = None
+        self._odom: Optional[Pose] = None  # the latest odometry reading
+        self._scaled_odom: Optional[Pose] = None  # o' there
         self._stamp = -math.inf
-        self._since_fix = (0.0, 0.0)  # m walked, rad turned since the last fix
         self._last_motion = -math.inf  # stamp of the last odometry reading that moved (a mission starts standing)
         self._last_camera: Optional[Tuple[float, np.ndarray]] = None  # (stamp, R_OC) of the last frame
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
@@ -989,8 +1011,8 @@ class RobotLocalizer:
     def reset(self) -> None:
         """Forget the pose (after a fall or a teleport): the next fix starts afresh."""
         self._correction = None
-        self.covariance = np.full((3, 3), np.nan)
-        self.total_covariance = np.full((3, 3), np.nan)
+        self._augmented = _unknown_pose(self._augmented[3:, 3:])  # the walk's scales stay what they were
+        self._augmented_total = _unknown_pose(self._augmented_total[3:, 3:])
         self.rejected_jumps, self._rejected = 0, None
         self._last_camera, self.camera_rate = None, None  # the last frame's camera says nothing of the next one's rate
 
@@ -999,11 +1021,43 @@ class RobotLocalizer:
         """Latest (x, y, theta) in W, or None before the first fix."""
         if self._correction is None or self._odom is None:
             return None
-        return compose(self._correction, self._odom)
+        return compose(self._correction, self._scaled(self._odom))
 
     def pose_at(self, odom: Pose) -> Optional[Pose]:
         """The pose at the time the odometry read ``odom`` (e.g. a frame's capture)."""
-        return None if self._correction is None else compose(self._correction, tuple(map(float, odom)))
+        return None if self._correction is None else compose(self._correction, self._scaled(odom))
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """3 x 3 of the pose (x, y, theta): what more fixes can reduce (nan before the first fix)."""
+        return self._augmented[:3, :3]
+
+    @covariance.setter
+    def covariance(self, value: np.ndarray) -> None:
+        self._augmented[:3, :3] = value
+        self._augmented[:3, 3:] = self._augmented[3:, :3] = 0.0
+
+    @property
+    def total_covariance(self) -> np.ndarray:
+        """3 x 3 of the pose with the intrinsics' share (module docstring): what the object filter weighs it by."""
+        return self._augmented_total[:3, :3]
+
+    @total_covariance.setter
+    def total_covariance(self, value: np.ndarray) -> None:
+        self._augmented_total[:3, :3] = value
+        self._augmented_total[:3, 3:] = self._augmented_total[3:, :3] = 0.0
+
+    @property
+    def scale_std(self) -> np.ndarray:
+        """Std of the walk's scales (s_x, s_y, s_w)."""
+        return np.sqrt(np.diag(self._augmented[3:, 3:]))
+
+    def _scaled(self, odom: Pose) -> Pose:
+        """o' at the odometry reading ``odom``: the latest o' and the scaled step from the latest reading to it."""
+        odom = tuple(map(float, odom))
+        if self._odom is None or self._scaled_odom is None:
+            return odom
+        return compose(self._scaled_odom, tuple(self.scale * np.array(relative(self._odom, odom))))
 
     def on_odometry(self, odom: Pose, stamp: float) -> None:
         """Carry the pose with a newer odometry reading; its covariance grows with the motion."""
@@ -1013,25 +1067,25 @@ class RobotLocalizer:
         if self._odom is not None:
             if np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion):
                 self._last_motion = stamp
+        scaled = self._scaled(odom)
         if self._odom is not None and self._correction is not None:
             dx, dy, dtheta = relative(self._odom, odom)
-            heading = compose(self._correction, self._odom)[2]
+            heading = compose(self._correction, self._scaled(self._odom))[2]
             c, s = math.cos(heading), math.sin(heading)
-            step_W = np.array([c * dx - s * dy, s * dx + c * dy])
-            F = np.array([[1.0, 0.0, -step_W[1]], [0.0, 1.0, step_W[0]], [0.0, 0.0, 1.0]])
+            step_W = np.array([c * dx * self.scale[0] - s * dy * self.scale[1], s * dx * self.scale[0] + c * dy * self.scale[1]])
+            Phi = np.eye(6)
+            Phi[:3, :3] = [[1.0, 0.0, -step_W[1]], [0.0, 1.0, step_W[0]], [0.0, 0.0, 1.0]]
+            Phi[:3, 3:] = [[c * dx, -s * dy, 0.0], [s * dx, c * dy, 0.0], [0.0, 0.0, dtheta]]
             G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             length = math.hypot(dx, dy)
-            kt, kr = self.params.odom_translation_noise, self.params.odom_rotation_noise
-            ks, kw = self.params.odom_scale_error, self.params.odom_turn_scale_error
-            walked, turned = self._since_fix
-            q_xy = kt**2 * length + ks**2 * ((walked + length) ** 2 - walked**2)
-            q_theta = kr**2 * (length + abs(dtheta)) + kw**2 * ((turned + abs(dtheta)) ** 2 - turned**2)
-            self._since_fix = (walked + length, turned + abs(dtheta))
-            Q = G @ np.diag([q_xy, q_xy, q_theta]) @ G.T
-            self.covariance = F @ self.covariance @ F.T + Q
-            self.total_covariance = F @ self.total_covariance @ F.T + Q
-            self._intrinsics_cross = F @ self._intrinsics_cross
-        self._odom, self._stamp = odom, stamp
+            kt, kr, kd = self.params.odom_translation_noise, self.params.odom_rotation_noise, self.params.odom_scale_drift
+            Q = np.zeros((6, 6))
+            Q[:3, :3] = G @ np.diag([kt**2 * length, kt**2 * length, kr**2 * (length + abs(dtheta))]) @ G.T
+            Q[3:, 3:] = np.eye(3) * kd**2 * (length + abs(dtheta))
+            self._augmented = Phi @ self._augmented @ Phi.T + Q
+            self._augmented_total = Phi @ self._augmented_total @ Phi.T + Q
+            self._intrinsics_cross = Phi @ self._intrinsics_cross
+        self._odom, self._scaled_odom, self._stamp = odom, scaled, stamp
 
     def position_std(self) -> float:
         """m, sqrt of the larger eigenvalue of the (x, y) covariance; inf before the first fix."""
@@ -1647,35 +1701,60 @@ class RobotLocalizer:
         """The covariance of (s_x, s_y, d_u, d_v) the camera's K may be off by (a new K: the pose's error
         no longer correlates with the new K's)."""
         self._intrinsics_covariance = np.asarray(covariance, dtype=float)
-        self._intrinsics_cross = np.zeros((3, 4))
+        self._intrinsics_cross = np.zeros((6, 4))
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
-        G, C, Sigma = fix.intrinsics_gain, self._intrinsics_cross, self._intrinsics_covariance
+        G, X, Sigma = fix.intrinsics_gain, self._intrinsics_cross, self._intrinsics_covariance
         R = fix.covariance + self._floor  # what the gate judged the fix by (module docstring)
         if self._correction is None or prior is None or not np.all(np.isfinite(self.covariance)):
-            pose, P = np.array(fix.pose), R
-            total, self._intrinsics_cross = R + G @ Sigma @ G.T, G @ Sigma
+            pose = np.array(fix.pose)
+            self._augmented = _known_pose(R, self._augmented[3:, 3:])
+            self._augmented_total = _known_pose(R + G @ Sigma @ G.T, self._augmented_total[3:, 3:])
+            self._intrinsics_cross = np.vstack([G @ Sigma, np.zeros((3, 4))])
         else:
+            P_prior = self.covariance
             if fix.conditioned:  # the posterior already: the data's information I_d = R_post^-1 - P^-1, K = P_post I_d
-                prior_information = np.linalg.inv(self.covariance)
+                prior_information = np.linalg.inv(P_prior)
                 w, V = np.linalg.eigh(np.linalg.inv(fix.covariance) - prior_information)
                 data_information = (V * np.maximum(w, 0.0)) @ V.T
                 pose, P = np.array(fix.pose), np.linalg.inv(prior_information + data_information)
                 K = P @ data_information
                 KG, measured = G, K @ P.T  # the fix's gain is the posterior's, K G already; K R K^T = P I_d P
             else:
-                K = self.covariance @ np.linalg.inv(self.covariance + R)
+                K = P_prior @ np.linalg.inv(P_prior + R)
                 pose = np.array(prior) + K @ _difference(fix.pose, prior)
-                P = (np.eye(3) - K) @ self.covariance
+                P = (np.eye(3) - K) @ P_prior
                 KG, measured = K @ G, K @ R @ K.T
-            A = np.eye(3) - K
-            total = A @ self.total_covariance @ A.T + A @ C @ KG.T + KG @ C.T @ A.T + KG @ Sigma @ KG.T + measured
-            self._intrinsics_cross = A @ C + KG @ Sigma
-        self.covariance = 0.5 * (P + P.T)
-        self.total_covariance = 0.5 * (total + total.T)
+            L = np.linalg.solve(P_prior, self._augmented[:3, 3:]).T  # P_sp P^-1: the scales move with the pose
+            M = np.vstack([np.eye(3), L])  # the whole state's gain is M K
+            self.scale = np.clip(self.scale + L @ _difference(tuple(pose), prior), *SCALE_BOUNDS)
+            posterior = self._augmented.copy()
+            posterior[:3, :3] = P
+            posterior[3:, :3] = L @ P
+            posterior[:3, 3:] = posterior[3:, :3].T
+            posterior[3:, 3:] -= L @ (P_prior - P) @ L.T
+            self._augmented = posterior
+            A = np.eye(6) - M @ K @ np.eye(3, 6)
+            T = self._augmented_total
+            total = A @ T @ A.T + A @ X @ (M @ KG).T + M @ KG @ X.T @ A.T + M @ KG @ Sigma @ KG.T @ M.T + M @ measured @ M.T
+            self._augmented_total = total
+            self._intrinsics_cross = A @ X + M @ KG @ Sigma
+        self._augmented = 0.5 * (self._augmented + self._augmented.T)
+        self._augmented_total = 0.5 * (self._augmented_total + self._augmented_total.T)
         fused = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
-        self._correction = compose(fused, relative(odom, (0.0, 0.0, 0.0)))
-        self._since_fix = (0.0, 0.0)
+        self._correction = compose(fused, relative(self._scaled(odom), (0.0, 0.0, 0.0)))
+
+
+def _unknown_pose(scale_covariance: np.ndarray) -> np.ndarray:
+    """6 x 6 covariance of (pose, scale) with the pose not known (nan) and the scales' ``scale_covariance``."""
+    return _known_pose(np.full((3, 3), np.nan), scale_covariance)
+
+
+def _known_pose(pose_covariance: np.ndarray, scale_covariance: np.ndarray) -> np.ndarray:
+    """6 x 6 covariance of (pose, scale), the two uncorrelated (a first fix: the pose from landmarks alone)."""
+    out = np.zeros((6, 6))
+    out[:3, :3], out[3:, 3:] = pose_covariance, scale_covariance
+    return out
 
 
 def head_directions(head_limits, yaw_step: float = 0.25, pitches: int = 2) -> List[Tuple[float, float]]:
