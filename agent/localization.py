@@ -1034,8 +1034,7 @@ class RobotLocalizer:
 
     @covariance.setter
     def covariance(self, value: np.ndarray) -> None:
-        self._augmented[:3, :3] = value
-        self._augmented[:3, 3:] = self._augmented[3:, :3] = 0.0
+        _set_pose_block(self._augmented, value)
 
     @property
     def total_covariance(self) -> np.ndarray:
@@ -1044,8 +1043,7 @@ class RobotLocalizer:
 
     @total_covariance.setter
     def total_covariance(self, value: np.ndarray) -> None:
-        self._augmented_total[:3, :3] = value
-        self._augmented_total[:3, 3:] = self._augmented_total[3:, :3] = 0.0
+        _set_pose_block(self._augmented_total, value)
 
     @property
     def scale_std(self) -> np.ndarray:
@@ -1748,6 +1746,12 @@ class RobotLocalizer:
 def _unknown_pose(scale_covariance: np.ndarray) -> np.ndarray:
     """6 x 6 covariance of (pose, scale) with the pose not known (nan) and the scales' ``scale_covariance``."""
     return _known_pose(np.full((3, 3), np.nan), scale_covariance)
+
+
+def _set_pose_block(augmented: np.ndarray, pose_covariance: np.ndarray) -> None:
+    """Set the pose's block of a (pose, scale) covariance, uncorrelated with the scales."""
+    augmented[:3, :3] = pose_covariance
+    augmented[:3, 3:] = augmented[3:, :3] = 0.0
 
 
 def _known_pose(pose_covariance: np.ndarray, scale_covariance: np.ndarray) -> np.ndarray:
