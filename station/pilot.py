@@ -481,7 +481,21 @@ class Pilot:
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
-                              self.localizer.position_std() if self.anchored else 0.0, flooded)
+                              self.localizer.position_std() if self.anchored else 0.0, flooded, self._object_expected(T_WC))
+
+    def _object_expected(self, T_WC: np.ndarray) -> bool:
+        """Was the object meant to be in this frame: no estimate yet, or the estimate's outline within the
+        image's width. A frame turned away from it (a landmark look, the self-calibration's views, the
+        head on its way back, the body turning faster than the head) is not one the object was missed in
+        (agent/mission.py: the object-lost clock does not count it)."""
+        if not self.ekf.initialized:
+            return True
+        ox, oy, r = self.ekf.x
+        p = T_WC[:3, :3].T @ (np.array([ox, oy, T_WC[2, 3]]) - T_WC[:3, 3])  # its centre at the camera's height, camera frame
+        if p[2] <= 0.0:
+            return False
+        d = float(np.linalg.norm(p))
+        return abs(math.atan2(p[0], p[2])) <= self.camera.hfov / 2.0 + math.asin(min(1.0, max(0.0, r) / max(d, 1e-9)))
 
     def _camera_covariance(self, cam: Cam) -> Optional[np.ndarray]:
         """Covariance of (cx, cy, psi) from the localizer's pose covariance at this capture (with the

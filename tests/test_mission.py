@@ -104,6 +104,42 @@ def test_object_lost_says_when_the_object_colour_filled_the_frames():
     assert d.outcome is Outcome.OBJECT_LOST and "filled 1 frames" in d.reason
 
 
+def test_frames_turned_away_from_the_object_do_not_count_towards_losing_it():
+    """Unseen in frames turned away on purpose (a landmark look, the way back), then in frames meant to
+    show it: lost only after ``object_lost_timeout`` s of the latter, and the reason says how long the
+    head was away; frames meant to show it alone lose it after the timeout."""
+    mission, t = active_mission()
+    away_until = t + 2 * P.object_lost_timeout
+    frame = t
+    while frame < away_until:
+        frame = round(frame + DT, 6)
+        mission.on_frame(frame, object_seen=False, landmark_fix=True, localized=True, gaze_on_object=False)
+        assert mission.tick(frame).outcome is None, frame
+    while frame < away_until + P.object_lost_timeout - 2 * DT:
+        frame = round(frame + DT, 6)
+        mission.on_frame(frame, object_seen=False, landmark_fix=True, localized=True)
+        assert mission.tick(frame).outcome is None, frame
+    _, d = run_until(mission, frame, frame + 4 * DT)
+    assert d.outcome is Outcome.OBJECT_LOST and "turned away from it for" in d.reason
+    assert float(d.reason.split("for ")[2].split(" s")[0]) == pytest.approx(2 * P.object_lost_timeout, abs=2 * DT)
+    mission, t = active_mission()
+    mission.on_frame(t + DT, object_seen=False, landmark_fix=True, localized=True)
+    _, d = run_until(mission, t, t + P.object_lost_timeout + 2 * DT)
+    assert d.outcome is Outcome.OBJECT_LOST and "turned away" not in d.reason
+
+
+def test_a_head_kept_away_from_the_object_loses_it_after_the_away_timeout():
+    """Frames all turned away: the object is lost after ``object_away_timeout`` s, not never."""
+    mission, t = active_mission()
+    frame, d = t, None
+    while d is None or d.outcome is None:
+        frame = round(frame + DT, 6)
+        mission.on_frame(frame, object_seen=False, landmark_fix=True, localized=True, gaze_on_object=False)
+        d = mission.tick(frame)
+    assert d.outcome is Outcome.OBJECT_LOST
+    assert frame - t == pytest.approx(P.object_away_timeout, abs=2 * DT)
+
+
 def test_search_scans_head_then_turns_then_gives_up():
     mission = Mission(P)
     mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)

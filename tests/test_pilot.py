@@ -707,3 +707,21 @@ def test_localize_without_a_fix_sweeps_the_body_keeping_the_object_in_the_head_s
     pilot.pose = (0.0, 0.0, 0.0)
     pilot.mission.on_frame(t + 6.0, object_seen=True, landmark_fix=False, localized=False)
     assert pilot.handle(Tick(t + 6.0)).decision.walk == (0.0, 0.0, p.search_turn_rate)  # it keeps going until the right limit
+
+
+def test_a_frame_is_meant_to_show_the_object_when_its_estimate_s_outline_is_within_the_image_width():
+    """``Pilot._object_expected`` (the mission's object-lost clock counts only such frames): no estimate
+    yet, every frame; then the object 1 m ahead of the robot (r = 0.1 m) is expected with the head
+    straight or turned until the outline leaves the image (hfov / 2 + asin(r / d)), not beyond, nor
+    behind the camera."""
+    from nao_core.geometry import camera_in_world
+
+    robot = load_robot_model()
+    pilot = Pilot(CONFIG, INFO)
+    T_WC = lambda yaw: camera_in_world((0.0, 0.0, 0.0), robot.camera_in_robot(yaw, 0.2))  # noqa: E731
+    assert pilot._object_expected(T_WC(2.0))
+    pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, np.array([1.0, 0.0, 0.1]), np.diag([1e-3, 1e-3, 1e-3]) ** 2)
+    edge = pilot.camera.hfov / 2.0 + math.asin(0.1 / 1.0)  # about: the camera sits a few cm from the body's origin
+    assert pilot._object_expected(T_WC(0.0)) and pilot._object_expected(T_WC(-0.9 * edge))
+    assert not pilot._object_expected(T_WC(1.2 * edge)) and not pilot._object_expected(T_WC(-1.2 * edge))
+    assert not pilot._object_expected(camera_in_world((2.0, 0.0, 0.0), robot.camera_in_robot(0.0, 0.2)))  # behind it
