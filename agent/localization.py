@@ -1062,19 +1062,22 @@ class RobotLocalizer:
         odom = _check_pose(odom, "odom")
         if not math.isfinite(stamp) or stamp < self._stamp:
             return
-        if self._odom is not None:
-            if np.any(np.abs(relative(self._odom, odom)) > self.params.still_motion):
-                self._last_motion = stamp
-        scaled = self._scaled(odom)
-        if self._odom is not None and self._correction is not None:
-            dx, dy, dtheta = relative(self._odom, odom)
-            heading = compose(self._correction, self._scaled(self._odom))[2]
+        if self._odom is None:
+            self._odom, self._scaled_odom, self._stamp = odom, odom, stamp
+            return
+        d = np.array(relative(self._odom, odom))  # (dx, dy, dtheta) in the robot frame
+        if np.any(np.abs(d) > self.params.still_motion):
+            self._last_motion = stamp
+        step = self.scale * d  # S d, the step of o'
+        if self._correction is not None:
+            dx, dy, dtheta = d
+            heading = self.pose[2]
             c, s = math.cos(heading), math.sin(heading)
+            G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             step_W = np.array([c * dx * self.scale[0] - s * dy * self.scale[1], s * dx * self.scale[0] + c * dy * self.scale[1]])
             Phi = np.eye(6)
             Phi[:3, :3] = [[1.0, 0.0, -step_W[1]], [0.0, 1.0, step_W[0]], [0.0, 0.0, 1.0]]
             Phi[:3, 3:] = [[c * dx, -s * dy, 0.0], [s * dx, c * dy, 0.0], [0.0, 0.0, dtheta]]
-            G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             length = math.hypot(dx, dy)
             kt, kr, kd = self.params.odom_translation_noise, self.params.odom_rotation_noise, self.params.odom_scale_drift
             Q = np.zeros((6, 6))
@@ -1083,7 +1086,8 @@ class RobotLocalizer:
             self._augmented = Phi @ self._augmented @ Phi.T + Q
             self._augmented_total = Phi @ self._augmented_total @ Phi.T + Q
             self._intrinsics_cross = Phi @ self._intrinsics_cross
-        self._odom, self._scaled_odom, self._stamp = odom, scaled, stamp
+        self._scaled_odom = compose(self._scaled(self._odom), tuple(step))
+        self._odom, self._stamp = odom, stamp
 
     def position_std(self) -> float:
         """m, sqrt of the larger eigenvalue of the (x, y) covariance; inf before the first fix."""

@@ -158,7 +158,7 @@ from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import floor_contact, floor_distance, image_distance
 from agent.keep_in import KeepIn
 from agent.coverage import Coverage, seen_fraction
-from agent.ekf import FloorContact, ObjectEKF, UpdateResult
+from agent.ekf import FloorContact, ObjectEKF, UpdateResult, measure
 from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
@@ -481,21 +481,18 @@ class Pilot:
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
-                              self.localizer.position_std() if self.anchored else 0.0, flooded, self._object_expected(T_WC))
+                              self.localizer.position_std() if self.anchored else 0.0, flooded, self._object_expected(cam))
 
-    def _object_expected(self, T_WC: np.ndarray) -> bool:
+    def _object_expected(self, cam: Cam) -> bool:
         """Was the object meant to be in this frame: no estimate yet, or the estimate's outline within the
-        image's width. A frame turned away from it (a landmark look, the self-calibration's views, the
-        head on its way back, the body turning faster than the head) is not one the object was missed in
-        (agent/mission.py: the object-lost clock does not count it)."""
+        image's width, |phi| <= hfov / 2 + delta / 2 (agent/ekf.py ``measure``). A frame turned away from it
+        (a landmark look, the self-calibration's views, the head on its way back, the body turning faster
+        than the head) is not one the object was missed in (agent/mission.py: the object-lost clock does
+        not count it)."""
         if not self.ekf.initialized:
             return True
-        ox, oy, r = self.ekf.x
-        p = T_WC[:3, :3].T @ (np.array([ox, oy, T_WC[2, 3]]) - T_WC[:3, 3])  # its centre at the camera's height, camera frame
-        if p[2] <= 0.0:
-            return False
-        d = float(np.linalg.norm(p))
-        return abs(math.atan2(p[0], p[2])) <= self.camera.hfov / 2.0 + math.asin(min(1.0, max(0.0, r) / max(d, 1e-9)))
+        phi, delta = measure(self.ekf.x, np.asarray(cam))
+        return abs(phi) <= 0.5 * (self.camera.hfov + delta)
 
     def _camera_covariance(self, cam: Cam) -> Optional[np.ndarray]:
         """Covariance of (cx, cy, psi) from the localizer's pose covariance at this capture (with the

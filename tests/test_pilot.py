@@ -714,14 +714,19 @@ def test_a_frame_is_meant_to_show_the_object_when_its_estimate_s_outline_is_with
     yet, every frame; then the object 1 m ahead of the robot (r = 0.1 m) is expected with the head
     straight or turned until the outline leaves the image (hfov / 2 + asin(r / d)), not beyond, nor
     behind the camera."""
+    from agent.camera import optical_axis_heading
     from nao_core.geometry import camera_in_world
 
     robot = load_robot_model()
     pilot = Pilot(CONFIG, INFO)
-    T_WC = lambda yaw: camera_in_world((0.0, 0.0, 0.0), robot.camera_in_robot(yaw, 0.2))  # noqa: E731
-    assert pilot._object_expected(T_WC(2.0))
+    def cam_at(pose, yaw):  # the frame's planar camera (cx, cy, psi), as the pilot makes it
+        T = camera_in_world(pose, robot.camera_in_robot(yaw, 0.2))
+        return (float(T[0, 3]), float(T[1, 3]), optical_axis_heading(T))
+
+    turned = lambda yaw: cam_at((0.0, 0.0, 0.0), yaw)  # noqa: E731
+    assert pilot._object_expected(turned(2.0))
     pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, np.array([1.0, 0.0, 0.1]), np.diag([1e-3, 1e-3, 1e-3]) ** 2)
     edge = pilot.camera.hfov / 2.0 + math.asin(0.1 / 1.0)  # about: the camera sits a few cm from the body's origin
-    assert pilot._object_expected(T_WC(0.0)) and pilot._object_expected(T_WC(-0.9 * edge))
-    assert not pilot._object_expected(T_WC(1.2 * edge)) and not pilot._object_expected(T_WC(-1.2 * edge))
-    assert not pilot._object_expected(camera_in_world((2.0, 0.0, 0.0), robot.camera_in_robot(0.0, 0.2)))  # behind it
+    assert pilot._object_expected(turned(0.0)) and pilot._object_expected(turned(-0.9 * edge))
+    assert not pilot._object_expected(turned(1.2 * edge)) and not pilot._object_expected(turned(-1.2 * edge))
+    assert not pilot._object_expected(cam_at((2.0, 0.0, 0.0), 0.0))  # behind it
