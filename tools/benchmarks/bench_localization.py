@@ -23,7 +23,7 @@ posterior's (what the fusion would hold); two baselines, cold: *pitch held* to T
 the share of counted frames whose predicted fix (``predicted_fix`` at the true pose) is within half
 the precision gate, and the fixes among them. NEES: the fixes' mean e^T R^-1 e of their (x, y)
 error e and covariance R (2 if R is honest, as the fusion and the jump gate assume).
-Cold, the gate drops fixes less precise than ``max_position_std`` (2.5 cm); with a prior it keeps
+Cold, the gate drops fixes less precise than ``max_position_std`` (5 cm); with a prior it keeps
 them up to ``max_position_std_with_prior`` (8 cm) for the Kalman fusion, which weighs them by their
 covariance, so a few are off by more than 5 cm there.
 """
