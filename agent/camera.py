@@ -61,16 +61,30 @@ class CameraModel:
     def hfov(self) -> float:
         return 2.0 * math.atan(0.5 * self.width / self.K[0, 0])
 
+    def normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Normalized coordinates (x_n, y_n) (N x 2) of pixel coordinates ``uv`` (N x 2), distortion removed."""
+        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        if not len(pts):  # OpenCV returns None for no points
+            return np.zeros((0, 2))
+        return cv2.undistortPoints(pts, self.K, self.dist, R=None, P=None, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """Pixel coordinates ``uv`` (N x 2) with the distortion removed: where the ideal pinhole of K sees them."""
+        if not np.any(self.dist):
+            return np.asarray(uv, dtype=float).reshape(-1, 2)
+        return self.normalized(uv) @ self.K[:2, :2].T + self.K[:2, 2]
+
     def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit rays in the optical frame for pixel coordinates ``uv`` (N x 2), distortion removed."""
-        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-        normalized = cv2.undistortPoints(pts, self.K, self.dist, R=None, P=None, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+        normalized = self.normalized(uv)
         rays = np.hstack([normalized, np.ones((normalized.shape[0], 1))])
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     def project(self, points_C: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N x 2) of optical-frame points (N x 3) in front of the camera."""
         pts = np.asarray(points_C, dtype=np.float64).reshape(-1, 3)
+        if not len(pts):  # OpenCV returns None for no points
+            return np.zeros((0, 2))
         uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
 

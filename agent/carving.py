@@ -30,10 +30,15 @@ A view says the voxel is empty iff all corners are in front, B lies inside the i
 then no point of the voxel projects onto the silhouette. Voxels behind the camera or whose B leaves
 the image are kept (unknown). A voxel survives while at most k views say empty (tolerance k).
 
-Lens distortion. The mask is first resampled to the ideal pinhole with the same K (bilinear,
-thresholded at 1/2: the edge stays where it was, with no growth; a 3 x 3 dilation here used to widen
-every silhouette by a pixel a side, about 4 mm of width at 0.6 m in QVGA); pixels that map outside
-the original image are set to silhouette (unknown, hence kept).
+Lens distortion. The mask is first resampled to an ideal pinhole (bilinear, thresholded at 1/2: the
+edge stays where it was, with no growth; a 3 x 3 dilation here used to widen every silhouette by a
+pixel a side, about 4 mm of width at 0.6 m in QVGA), the view's camera from then on: K with its
+focal lengths scaled by the least s >= 1 that puts the pinhole's whole frame inside the lens's
+image (``_pinhole``; s = 1 for a barrel, whose image reaches beyond the pinhole's frame; a
+pincushion's does not reach its corners). Every pinhole pixel is then seen: pixels outside the
+lens's image filled as silhouette (unknown) would make every silhouette touch the top border (no
+height bound: a carve 0.6 m tall, IoU 0.10 in matrix world 6 with k1 = 0.12) and the bottom row's
+floor extension span the frame.
 
 Coarse to fine. Cells of 2^l x 2^l x 2^l voxels form an octree over the grid. Q_child is inside
 Q_parent, so B_child is inside B_parent: a parent that is empty in a view has only empty children;
@@ -148,8 +153,8 @@ def volume_bounds(
     rho = radius + params.margin + params.sigma_scale * spread
     top = params.max_height
     for mask, camera, T_WC in views:
-        silhouette = _pinhole_mask(*_checked_view(mask, camera, T_WC))
-        top = min(top, _height_bound(silhouette, camera, np.asarray(T_WC, dtype=float), (x, y), rho))
+        silhouette, pinhole = _pinhole_mask(*_checked_view(mask, camera, T_WC))
+        top = min(top, _height_bound(silhouette, pinhole, np.asarray(T_WC, dtype=float), (x, y), rho))
     top = max(top, params.pitch)
     return np.array([x - rho, y - rho, 0.0]), np.array([x + rho, y + rho, top])
 
@@ -199,34 +204,72 @@ def _checked_view(mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray) -> Tu
     return binary, camera
 
 
+PINHOLE_MAX_ZOOM = 2.0  # a lens whose image needs the pinhole's focal lengths scaled beyond this is refused
+
+
 @functools.lru_cache(maxsize=4)
-def _undistort_maps(K: bytes, dist: bytes, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:
-    """Pixel maps from the ideal pinhole to the distorted image (float64 K and dist as bytes). Every
-    view of a run shares one camera, and a VGA map costs about 5 ms: it is computed once."""
+def _undistort_maps(K: bytes, dist: bytes, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(map_x, map_y, K'): pixel maps from the ideal pinhole K' (module docstring, "Lens distortion") to the
+    distorted image (float64 K and dist as bytes). Every view of a run shares one camera, and a VGA
+    map costs about 5 ms: it is computed once."""
     K_, dist_ = np.frombuffer(K).reshape(3, 3), np.frombuffer(dist)
-    return cv2.initUndistortRectifyMap(K_, dist_, None, K_, size, cv2.CV_32FC1)
+    width, height = size
+    border = np.concatenate([[(u, v) for u in range(width) for v in (0, height - 1)],
+                             [(u, v) for v in range(height) for u in (0, width - 1)]]).astype(np.float64)
+    normalized = (border - K_[:2, 2]) / np.diag(K_)[:2]
+
+    def inside(scale: float) -> bool:  # the pinhole's border, its focal lengths times scale, within the lens's image
+        rays = np.column_stack([normalized / scale, np.ones(len(normalized))])
+        uv = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K_, dist_)[0].reshape(-1, 2)
+        return bool(np.all((uv >= 0.0) & (uv <= (width - 1, height - 1))))
+
+    low, high = 1.0, PINHOLE_MAX_ZOOM
+    if not inside(high):
+        raise ValueError(f"camera.dist {dist_.tolist()}: the lens's image holds no pinhole frame of the same size "
+                         f"with its focal lengths up to {PINHOLE_MAX_ZOOM} times K's")
+    if not inside(low):
+        for _ in range(30):  # bisection to 1e-9 of the scale
+            low, high = (low, 0.5 * (low + high)) if inside(0.5 * (low + high)) else (0.5 * (low + high), high)
+        low = high
+    pinhole = K_.copy()
+    pinhole[0, 0] *= low
+    pinhole[1, 1] *= low
+    return (*cv2.initUndistortRectifyMap(K_, dist_, None, pinhole, size, cv2.CV_32FC1), pinhole)
 
 
-def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """The silhouette as seen by the ideal pinhole with the same K (see the module docstring)."""
+def _pinhole(camera: CameraModel) -> CameraModel:
+    """The ideal pinhole a view of ``camera`` is resampled to (module docstring, "Lens distortion")."""
     if not np.any(camera.dist):
-        return mask01
-    ideal = _remap_to_pinhole(mask01.astype(np.float32), camera, cv2.BORDER_CONSTANT, 1.0)
-    return (ideal >= 0.5).astype(np.uint8)
+        return camera
+    K = _undistort_maps(*_map_key(camera))[2]
+    return CameraModel(K=K.copy(), dist=np.zeros(5), width=camera.width, height=camera.height)
+
+
+def _map_key(camera: CameraModel) -> Tuple[bytes, bytes, Tuple[int, int]]:
+    K, dist = np.asarray(camera.K, dtype=float), np.asarray(camera.dist, dtype=float).ravel()
+    return K.tobytes(), dist.tobytes(), (camera.width, camera.height)
+
+
+def _pinhole_mask(mask01: np.ndarray, camera: CameraModel) -> Tuple[np.ndarray, CameraModel]:
+    """(silhouette, camera): the silhouette as the ideal pinhole sees it, and that pinhole (module docstring)."""
+    if not np.any(camera.dist):
+        return mask01, camera
+    ideal = _remap_to_pinhole(mask01.astype(np.float32), camera)
+    return (ideal >= 0.5).astype(np.uint8), _pinhole(camera)
 
 
 def _pinhole_image(image: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """The colour image as seen by the ideal pinhole with the same K (bilinear)."""
+    """The colour image as the ideal pinhole ``_pinhole(camera)`` sees it (bilinear)."""
     if not np.any(camera.dist):
         return image
-    return _remap_to_pinhole(image, camera, cv2.BORDER_REPLICATE)
+    return _remap_to_pinhole(image, camera)
 
 
-def _remap_to_pinhole(image: np.ndarray, camera: CameraModel, border: int, border_value: float = 0.0) -> np.ndarray:
-    """Bilinear resampling of a distorted image onto the ideal pinhole (maps cached per camera)."""
-    K, dist = np.asarray(camera.K, dtype=float), np.asarray(camera.dist, dtype=float).ravel()
-    map_x, map_y = _undistort_maps(K.tobytes(), dist.tobytes(), (camera.width, camera.height))
-    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=border, borderValue=border_value)
+def _remap_to_pinhole(image: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Bilinear resampling of a distorted image onto its ideal pinhole (maps cached per camera; every
+    pinhole pixel lies inside the image, the border's replica covers the bilinear lookup's last half pixel)."""
+    map_x, map_y, _ = _undistort_maps(*_map_key(camera))
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _dilated(silhouette: np.ndarray, radius: int) -> np.ndarray:
@@ -367,18 +410,17 @@ class VoxelCarver:
     def add_view(self, mask: np.ndarray, camera: CameraModel, T_WC: np.ndarray, image: Optional[np.ndarray] = None) -> int:
         """Carve with one silhouette; returns the number of voxels it removed. ``image`` (BGR, the
         camera's size) is kept for the mesh's vertex colours."""
-        pinhole = _pinhole_mask(*_checked_view(mask, camera, T_WC))
+        pinhole, ideal = _pinhole_mask(*_checked_view(mask, camera, T_WC))
         if image is not None:
             if np.shape(image) != (camera.height, camera.width, 3) or np.asarray(image).dtype != np.uint8:
                 raise ValueError(f"image: expected a {camera.height} x {camera.width} x 3 uint8 BGR image, got {np.shape(image)}")
-            self._colour_views.append((_pinhole_image(np.asarray(image), camera), pinhole, np.asarray(camera.K, dtype=float),
-                                       np.asarray(T_WC, dtype=float)))
+            self._colour_views.append((_pinhole_image(np.asarray(image), camera), pinhole, ideal.K, np.asarray(T_WC, dtype=float)))
         silhouette = _dilated(pinhole, self.params.dilation)
-        P = np.asarray(camera.K, dtype=float) @ invert(np.asarray(T_WC, dtype=float))[:3]
+        P = ideal.K @ invert(np.asarray(T_WC, dtype=float))[:3]
         if self._plain is not None:
             self._plain.add_view(mask, camera, T_WC)
             self._evidence.append((P, _dilated(silhouette, 1)))
-            silhouette = np.vstack([silhouette, _floor_extension(silhouette, camera, np.asarray(T_WC, dtype=float))])
+            silhouette = np.vstack([silhouette, _floor_extension(silhouette, ideal, np.asarray(T_WC, dtype=float))])
         x, y, w, h = cv2.boundingRect(silhouette)  # the summed-area table covers the silhouette's box only
         table = cv2.integral(silhouette[y : y + h, x : x + w], sdepth=cv2.CV_32S)
         image = np.array([camera.width, silhouette.shape[0], x, y], dtype=np.int64)
@@ -490,9 +532,9 @@ def carve_consistent(
 
 
 def _pinhole_views(views: Sequence[View]) -> List[View]:
-    """The views with each mask resampled to a bool silhouette on the ideal pinhole (``_pinhole_mask``)."""
-    return [(_pinhole_mask(*_checked_view(mask, camera, T_WC)) > 0, camera, np.asarray(T_WC, dtype=float))
-            for mask, camera, T_WC in views]
+    """The views with each mask resampled to a bool silhouette on its ideal pinhole (``_pinhole_mask``), and that pinhole."""
+    pinholes = [_pinhole_mask(*_checked_view(mask, camera, T_WC)) for mask, camera, T_WC in views]
+    return [(silhouette > 0, ideal, np.asarray(T_WC, dtype=float)) for (silhouette, ideal), (_, _, T_WC) in zip(pinholes, views)]
 
 
 def _project_centres(centres: np.ndarray, pitch: float, camera: CameraModel, T_WC: np.ndarray, shape: Tuple[int, int],

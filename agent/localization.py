@@ -441,13 +441,6 @@ class PlanarModel:
         K = camera.K
         self.f, self.c = np.array([K[0, 0], K[1, 1]]), K[:2, 2]
 
-    def undistort(self, u: np.ndarray) -> np.ndarray:
-        """Pixels with the lens distortion removed (pinhole pixels of K)."""
-        if not np.any(self.camera.dist):
-            return np.asarray(u, dtype=float).reshape(-1, 2)
-        K = self.camera.K
-        return cv2.undistortPoints(np.asarray(u, dtype=np.float64).reshape(-1, 1, 2), K, self.camera.dist, P=K).reshape(-1, 2)
-
     def to_camera(self, p: np.ndarray, X: np.ndarray) -> np.ndarray:
         """X_C (N x 3) for p = (x, y, theta[, delta[, epsilon]])."""
         c, s = math.cos(p[2]), math.sin(p[2])
@@ -1184,7 +1177,7 @@ class RobotLocalizer:
             markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, camera_in_world(prior, T_BC)))
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
-        markers = _Points(markers.X, model.undistort(markers.u), markers.ids, markers.group)
+        markers = _Points(markers.X, model.camera.undistort(markers.u), markers.ids, markers.group)
         return self._solve(model, markers, lambda: self.detector.color_blobs(image, self.camera), prior_p, prior_covariance)
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
@@ -1204,7 +1197,7 @@ class RobotLocalizer:
             if len(u) != len(X) or len(group) != len(X):
                 raise ValueError(f"{len(X)} world points, {len(u)} pixels and {len(group)} groups do not match")
             finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(u), axis=1)
-            points = _Points(X[finite], model.undistort(u[finite]), list(group[finite]), group[finite])
+            points = _Points(X[finite], model.camera.undistort(u[finite]), list(group[finite]), group[finite])
             prior_p = None if prior is None or not all(math.isfinite(v) for v in prior) else np.array([*prior, 0.0])
             return self._solve(model, points, dict, prior_p, _positive_covariance(prior_covariance))
         except NoFix as reason:
@@ -1229,7 +1222,7 @@ class RobotLocalizer:
             except NoFix as reason:
                 reasons.append(f"markers: {reason}")
         if (fit is None or len(fit[0]) < self.params.color_below_aruco_points) and self.detector.colors:
-            centroids = {k: model.undistort(v) for k, v in colour_blobs().items()}
+            centroids = {k: model.camera.undistort(v) for k, v in colour_blobs().items()}
             n_blobs = sum(len(v) for v in centroids.values())
             self.landmarks_seen += n_blobs
             try:

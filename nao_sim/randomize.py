@@ -15,6 +15,9 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   sway scaled by U(``sway_scale``);
 * the camera: the simulator's true intrinsics differ from the configured (what the station uses) by
   ``focal_error`` (relative, random sign per axis) and ``principal_error`` px (random sign per axis);
+* the lens: a distortion (k1, k2, p1, p2, 0) uniform within +-``lens_distortion`` = (|k1|, |k2|, |p|),
+  from ``default_rng([seed, 2])`` (so the other draws stay), rendered (nao_sim/render.py, "Lens
+  distortion") and told the station as a calibration finds it (``WorldSpec.station_overrides``);
 * the NAOqi stand-in's frames: latency range, drop rate and clock offset drawn in their ranges;
 * the NAOqi itself: with probability ``bare_naoqi`` the stand-in is bare (``StandIn(bare=True)``: no
   posture or autonomous-life service, no ALMemory subscriber, timestamps or battery key, images in
@@ -83,6 +86,7 @@ class Randomizer:
     exposure: Tuple[float, float] = field(metadata=bounds(0.1, 3.0))  # mean brightness factor
     mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
     shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
+    lens_distortion: Tuple[float, float, float] = field(metadata=bounds(0.0, 0.3))  # largest |k1|, |k2|, |p1| and |p2|
     floor_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))  # BGR paints to draw from
     wall_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))
     light_elevation: Tuple[float, float] = field(metadata=bounds(0.1, math.pi / 2))  # rad above the horizon
@@ -127,6 +131,26 @@ class WorldSpec:
     bare_naoqi: bool = False  # served by StandIn(bare=True)
     object_color: str = "red"  # the object's perception colour class (the station's perception.object_color)
 
+    @property
+    def lens(self) -> Tuple[float, ...]:
+        """The true camera's distortion (k1, k2, p1, p2, k3), the same at every resolution."""
+        return tuple(next(iter(self.robot.camera.resolutions.values())).dist)
+
+    def station_overrides(self) -> Dict[str, object]:
+        """The station's ``robot`` section for this world: the configured camera with the true lens's
+        distortion, as ``station calibrate`` finds it (the focal lengths and principal point stay
+        the configured ones: the calibration error the self-calibration corrects)."""
+        if not any(self.lens):
+            return {}
+        resolutions = {name: {"dist": list(self.lens)} for name in self.robot.camera.resolutions}
+        return {"robot": {"camera": {"resolutions": resolutions}}}
+
+    def station_robot(self) -> RobotModel:
+        """The configured robot model (NAO V6) as the station holds it in this world (``station_overrides``)."""
+        robot = load_robot_model()
+        resolutions = {name: dataclasses.replace(intr, dist=self.lens) for name, intr in robot.camera.resolutions.items()}
+        return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, resolutions=resolutions))
+
     def summary(self) -> Dict[str, object]:
         dyn, noise = self.config.dynamics, self.config.noise
         return {"seed": self.seed, "layout": self.layout, "object": self.object_name, "object_color": self.object_color,
@@ -139,7 +163,8 @@ class WorldSpec:
                 "mount_error_deg": [round(math.degrees(a), 2) for a in noise.mount_error],
                 "shutter_ms": round(1e3 * noise.shutter, 1), "floor_color": list(self.config.room.floor_color),
                 "wall_color": list(self.config.room.wall_color), "light": [round(x, 2) for x in self.config.room.light],
-                "ambient": round(self.config.room.ambient, 2), "object_finish": [round(x, 2) for x in self.scenario.finish or ()]}
+                "ambient": round(self.config.room.ambient, 2), "object_finish": [round(x, 2) for x in self.scenario.finish or ()],
+                "lens": [round(x, 4) for x in self.lens[:4]]}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -195,7 +220,10 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     config = dataclasses.replace(base.with_layout(layout.file, layout.half_size), dynamics=dyn, noise=noise,
                                  scenarios={object_name: scenario})
     camera = robot.camera
-    resolutions = {k: _intrinsics(v, rng, r.focal_error, r.principal_error) for k, v in camera.resolutions.items()}
+    k1, k2, p = r.lens_distortion
+    lens = tuple(float(x) for x in np.random.default_rng([seed, 2]).uniform(-1.0, 1.0, 4) * (k1, k2, p, p)) + (0.0,)
+    resolutions = {k: dataclasses.replace(_intrinsics(v, rng, r.focal_error, r.principal_error), dist=lens)
+                   for k, v in camera.resolutions.items()}
     true_robot = dataclasses.replace(robot, camera=dataclasses.replace(camera, resolutions=resolutions))
     bare = bool(rng.uniform() < r.bare_naoqi)  # after the above: their draws do not depend on it
     sensor = dataclasses.replace(noise, pixel_sigma=float(rng.uniform(*r.pixel_sigma)),  # last

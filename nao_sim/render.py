@@ -44,9 +44,20 @@ image drawn at R_1 to the one at R_s = R_1 exp(s [w]_x), w = log(R_1^T R_0), by 
 and the frame is the mean of I_s over n = ceil(max pixel displacement) + 1 evenly spaced s (at most
 ``MOTION_SAMPLES``): a box blur along the image motion, as a rotating camera integrates light.
 
+Lens distortion: with a non-zero model (k1, k2, p1, p2, k3), the scene and its motion blur are drawn
+by an ideal pinhole with the same focal lengths on a canvas that holds the whole distorted field
+(``Canvas``), then resampled (bicubic) to the distorted image: pixel u_d shows the canvas at
+
+    u_p = K' undistort(u_d),   K' = K with the principal point moved by the canvas's origin,
+
+undistort OpenCV's model inverted to convergence. So straight edges bend as the lens bends them, and
+every item stays exact on the canvas (polygon edges are straight only in a pinhole image). The
+resampling blurs a little, more than a lens would (a sensor samples the optical image once):
+marker corners found 0.13 px from their projection at the median without a lens, 0.19 / 0.16 px
+through k1 = +-0.12 bicubic, 0.24 / 0.20 px bilinear (Lanczos: 0.17 / 0.14 px at six times the cost).
+
 Finally the sensor: a Gaussian optical blur of ``blur_sigma`` px at VGA (scaled to the resolution),
 the scene's ``exposure`` times a per-frame gain jitter, and Gaussian pixel noise (a seeded pool).
-Polygon edges are straight between projected vertices: exact for the default zero distortion.
 """
 
 from __future__ import annotations
@@ -67,6 +78,7 @@ SHIFT = 4  # sub-pixel bits of cv2 polygon filling
 SUPERSAMPLE = 8  # sub-pixels per pixel side for the area-exact anti-aliasing of polygons
 TEXELS_PER_M = 256  # floor and wall textures repeat every metre
 MOTION_SAMPLES = 24  # most shifted copies averaged for the motion blur
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)  # to convergence
 BOARD_MARGIN = 0.25  # white quiet zone around a marker, fraction of its side
 BOARD_AMBIENT = 0.85  # a matte white board facing into the room is lit from all round
 POST_RADIUS = 0.01  # m
@@ -152,15 +164,14 @@ class _View:
         self.R_CW = T_WC[:3, :3].T
         self.t_CW = -self.R_CW @ T_WC[:3, 3]
         self.centre = T_WC[:3, 3]
-        self.K = intrinsics.K
-        self.dist = np.asarray(intrinsics.dist, dtype=float)
-        self.ray_x, self.ray_y = rays  # H x W: each pixel's ray (x, y, 1) in the optical frame, distortion removed
+        self.K = intrinsics.K  # a pinhole's (the canvas's: no distortion)
+        self.ray_x, self.ray_y = rays  # H x W: each pixel's ray (x, y, 1) in the optical frame
 
     def to_camera(self, points_W: np.ndarray) -> np.ndarray:
         return points_W @ self.R_CW.T + self.t_CW
 
     def project(self, points_C: np.ndarray) -> np.ndarray:
-        uv, _ = cv2.projectPoints(points_C.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist)
+        uv, _ = cv2.projectPoints(points_C.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, None)
         return uv.reshape(-1, 2)
 
 
@@ -467,6 +478,39 @@ class _ColourBall:
         _blend(image[y0:y1, x0:x1], alpha, covered)
 
 
+@dataclass(frozen=True)
+class Canvas:
+    """The pinhole image a distorted camera's frame is resampled from (module docstring, "Lens
+    distortion"): its intrinsics and, per pixel of the distorted frame, where it lies on the canvas."""
+
+    intrinsics: CameraIntrinsics  # no distortion; the frame's focal lengths, the canvas's size and principal point
+    map_x: Optional[np.ndarray]  # H x W float32 canvas column of each frame pixel; None: no distortion, the canvas is the frame
+    map_y: Optional[np.ndarray]
+
+    @classmethod
+    def of(cls, intr: CameraIntrinsics) -> "Canvas":
+        if not np.any(intr.dist):
+            return cls(intr, None, None)
+        v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float64)
+        pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+        n = cv2.undistortPoints(pix, intr.K, np.asarray(intr.dist, dtype=float), R=None, P=None, criteria=UNDISTORT_CRITERIA)
+        pinhole = n.reshape(-1, 2) * (intr.fx, intr.fy) + (intr.cx, intr.cy)
+        if not np.all(np.isfinite(pinhole)):
+            raise ValueError(f"camera distortion {list(intr.dist)}: the lens model does not invert over the image")
+        x0, y0 = np.floor(pinhole.min(axis=0)).astype(int) - 2  # two pixels of margin for the bilinear lookup
+        x1, y1 = np.ceil(pinhole.max(axis=0)).astype(int) + 3
+        canvas = replace(intr, width=int(x1 - x0), height=int(y1 - y0), cx=float(intr.cx - x0), cy=float(intr.cy - y0),
+                         dist=(0.0, 0.0, 0.0, 0.0, 0.0))
+        maps = (pinhole - (x0, y0)).astype(np.float32).reshape(intr.height, intr.width, 2)
+        return cls(canvas, maps[..., 0].copy(), maps[..., 1].copy())
+
+    def frame(self, image: np.ndarray) -> np.ndarray:
+        """The distorted frame of a canvas image."""
+        if self.map_x is None:
+            return image
+        return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
     """Inward unit normals (optical frame) of the planes z = 0 and of the image borders.
 
@@ -524,11 +568,10 @@ class Renderer:
         """``blur_sigma``: optical blur, px at 640 px wide; ``exposure``: mean brightness factor."""
         self.intrinsics = intrinsics
         self.room = room
-        w, h = intrinsics.width, intrinsics.height
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-        normalized = cv2.undistortPoints(pix, intrinsics.K, np.asarray(intrinsics.dist, dtype=float)).reshape(-1, 2)
-        self._ray_x, self._ray_y = normalized.T.astype(np.float32).copy()  # rays (x, y, 1), optical frame
+        self._canvas = Canvas.of(intrinsics)
+        canvas = self._canvas.intrinsics
+        v, u = np.mgrid[0 : canvas.height, 0 : canvas.width].astype(np.float32)
+        self._ray_x, self._ray_y = (u - canvas.cx) / canvas.fx, (v - canvas.cy) / canvas.fy  # rays (x, y, 1), optical frame
         self._atlas, self._wall_rows = _textures(room)
         light = Light.of(room)
         material = MATTE if scenario.finish is None else Material(*scenario.finish)
@@ -547,8 +590,9 @@ class Renderer:
                     raise ValueError(f"landmark {lm.id!r}: the simulator has no colour {lm.color!r}; known: {known}")
                 self._items.append(_ColourBall(lm, COLOURS_BGR[lm.color], light))
         self._centres = np.array([item.centre for item in self._items])
-        self._frustum = _frustum_normals(intrinsics)
+        self._frustum = _frustum_normals(canvas)
         self._radii = np.array([item.radius for item in self._items])
+        w, h = intrinsics.width, intrinsics.height
         rng = np.random.default_rng(seed)
         self._noise = [rng.normal(0.0, pixel_sigma, (h + 16, w + 16, 3)).astype(np.int16) for _ in range(4)]
         self._pixel_sigma = pixel_sigma
@@ -562,7 +606,7 @@ class Renderer:
         S, hs = TEXELS_PER_M, np.float32(self.room.half_size)
         c = T_WC[:3, 3].astype(np.float32)
         R = T_WC[:3, :3].astype(np.float32)
-        d = np.stack([R[i, 0] * self._ray_x + R[i, 1] * self._ray_y + R[i, 2] for i in range(3)])  # no BLAS threads
+        d = np.stack([(R[i, 0] * self._ray_x + R[i, 1] * self._ray_y + R[i, 2]).ravel() for i in range(3)])  # no BLAS threads
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # rays parallel to a wall or the floor
             t_wall = np.minimum((np.copysign(hs, d[0]) - c[0]) / d[0], (np.copysign(hs, d[1]) - c[1]) / d[1])
             t_floor = -c[2] / d[2]
@@ -572,7 +616,7 @@ class Renderer:
         # on a wall one of x, y is +-half_size (a whole number of texture periods): x + y runs along it
         u = np.where(floor, hit[0], hit[0] + hit[1])
         v = np.where(floor, hit[1] - np.floor(hit[1] * (1.0 / S)) * S, np.clip(hit[2], 0, self._wall_rows - 1) + S)
-        h, w = self.intrinsics.height, self.intrinsics.width
+        h, w = self._ray_x.shape
         return cv2.remap(self._atlas, u.reshape(h, w), v.reshape(h, w), cv2.INTER_NEAREST, borderMode=cv2.BORDER_WRAP)
 
     def render(self, T_WC: np.ndarray, frame_index: int, R_open: Optional[np.ndarray] = None) -> np.ndarray:
@@ -580,8 +624,7 @@ class Renderer:
         ``R_open``: the camera's orientation (R_WC) when the shutter opened (motion blur), None: a still camera."""
         T_WC = np.asarray(T_WC, dtype=float)
         image = self.background(T_WC)
-        h, w = self.intrinsics.height, self.intrinsics.width
-        view = _View(T_WC, self.intrinsics, (self._ray_x.reshape(h, w), self._ray_y.reshape(h, w)))
+        view = _View(T_WC, self._canvas.intrinsics, (self._ray_x, self._ray_y))
         centres_C = view.to_camera(self._centres)
         in_view = (centres_C @ self._frustum.T > -self._radii[:, None]).all(axis=1)  # bounding spheres
         depth = np.linalg.norm(centres_C, axis=1)
@@ -590,12 +633,12 @@ class Renderer:
                 self._items[i].draw(image, view)
         if R_open is not None:
             image = self._motion_blur(image, T_WC[:3, :3], np.asarray(R_open, dtype=float))
-        return self._sensor(image, frame_index)
+        return self._sensor(self._canvas.frame(image), frame_index)
 
     def _motion_blur(self, image: np.ndarray, R_1: np.ndarray, R_0: np.ndarray) -> np.ndarray:
         """The mean of the image over the shutter's rotation from R_0 to R_1 (module docstring)."""
         w = cv2.Rodrigues(R_1.T @ R_0)[0].ravel()
-        K = self.intrinsics.K
+        K = self._canvas.intrinsics.K
         K_inv = np.linalg.inv(K)
         h, wd = image.shape[:2]
         corners = np.array([[0.0, 0.0, 1.0], [wd, 0.0, 1.0], [0.0, h, 1.0], [wd, h, 1.0], [wd / 2, h / 2, 1.0]]).T

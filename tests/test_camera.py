@@ -64,6 +64,23 @@ def test_pixel_ray_roundtrip_with_distortion(u, v):
     assert np.allclose(cam.project(ray * 2.7), [[u, v]], atol=1e-3)
 
 
+@settings(max_examples=100, deadline=None)
+@given(u=st.floats(5, 635), v=st.floats(5, 475))
+def test_undistorted_pixels_are_where_the_pinhole_of_k_sees_the_ray(u, v):
+    cam = distorted_camera()
+    pinhole = CameraModel(K=cam.K, dist=np.zeros(5), width=cam.width, height=cam.height)
+    ray = cam.pixels_to_rays(np.array([[u, v]]))
+    assert np.allclose(cam.undistort(np.array([[u, v]])), pinhole.project(ray), atol=1e-6)
+
+
+def test_no_points_give_no_pixels_not_an_error():
+    """OpenCV's undistortPoints and projectPoints return None for no points: a frame without a landmark."""
+    cam = distorted_camera()
+    for result in (cam.normalized(np.zeros((0, 2))), cam.undistort(np.zeros((0, 2))), cam.project(np.zeros((0, 3))),
+                   cam.pixels_to_rays(np.zeros((0, 2)))):
+        assert result.shape[0] == 0
+
+
 def test_project_world_marks_points_behind():
     cam = CameraModel.from_fov(640, 480, math.radians(57.2))
     T_WC = camera_in_world((0.0, 0.0, 0.0), ROBOT.camera_in_robot(0.0, 0.0))

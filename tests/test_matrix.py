@@ -168,6 +168,12 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
         true = s.robot.camera.intrinsics("qvga")
         assert abs(true.fx / configured.fx - 1.0) == pytest.approx(r.focal_error)
         assert abs(true.cx - configured.cx) == pytest.approx(r.principal_error)
+        # the lens: drawn within its ranges, the same at every resolution, and told the station as calibrated
+        assert all(abs(k) <= bound for k, bound in zip(s.lens, (*r.lens_distortion, r.lens_distortion[2], 0.0)))
+        assert {i.dist for i in s.robot.camera.resolutions.values()} == {s.lens} and s.lens[4] == 0.0
+        told = s.station_overrides()["robot"]["camera"]["resolutions"]
+        assert all(told[name]["dist"] == list(s.lens) for name in s.robot.camera.resolutions)
+        assert s.station_robot().camera.intrinsics("qvga") == dataclasses.replace(configured, dist=s.lens)
         assert r.latency[0] <= s.config.noise.latency[0] <= s.config.noise.latency[1] <= r.latency[1]
         for name in ("pixel_sigma", "blur_sigma", "exposure", "shutter"):
             low, high = getattr(r, name)
@@ -180,6 +186,9 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
         assert s.object_color not in balls and s.scenario.color == tuple(r.object_colors[s.object_color])
         assert s.config.scenarios[s.object_name] == s.scenario  # what the simulator renders
     assert {s.object_color for s in specs} == set(r.object_colors)
+    for i, bound in enumerate(r.lens_distortion):  # each coefficient of either sign, and some near its bound
+        k = np.array([s.lens[i] for s in specs])
+        assert k.min() < 0.0 < k.max() and np.abs(k).max() > 0.8 * bound, (i, k)
     assert len({s.config.room for s in specs}) == len(specs)  # every world looks different
     assert {s.config.room.floor_color for s in specs} == set(r.floor_colors)
     world = RandomWorld(specs[0])

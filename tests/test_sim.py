@@ -44,17 +44,27 @@ def planar(x: float, y: float, theta: float) -> np.ndarray:
     return np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
 
 
-def project(points_W: np.ndarray, T_WC: np.ndarray, resolution: str) -> np.ndarray:
-    intr = ROBOT.camera.intrinsics(resolution)
+def distorted(robot, dist=(-0.12, 0.05, 0.002, -0.0015, 0.0)):
+    """The robot with a lens distortion (k1, k2, p1, p2, k3) at every resolution: a barrel, as webcams have."""
+    resolutions = {k: dataclasses.replace(v, dist=dist) for k, v in robot.camera.resolutions.items()}
+    return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, resolutions=resolutions))
+
+
+DISTORTED = distorted(ROBOT)
+
+
+def project(points_W: np.ndarray, T_WC: np.ndarray, resolution: str, robot=ROBOT) -> np.ndarray:
+    intr = robot.camera.intrinsics(resolution)
     T_CW = np.linalg.inv(T_WC)
     rvec, _ = cv2.Rodrigues(T_CW[:3, :3])
     uv, _ = cv2.projectPoints(np.asarray(points_W, float).reshape(-1, 1, 3), rvec, T_CW[:3, 3], intr.K, np.asarray(intr.dist))
     return uv.reshape(-1, 2)
 
 
-def world_on_orbit(scenario: str, resolution: str, distance: float, azimuth: float, seed: int = 3, **kw) -> SimWorld:
+def world_on_orbit(scenario: str, resolution: str, distance: float, azimuth: float, seed: int = 3, robot=ROBOT,
+                   **kw) -> SimWorld:
     """A world with the robot at rest on an orbit around the object, facing it, camera aimed at it."""
-    world = SimWorld(scenario, ROBOT, resolution, seed=seed, clock=FakeClock(), **kw)
+    world = SimWorld(scenario, robot, resolution, seed=seed, clock=FakeClock(), **kw)
     ox, oy = world.scenario.position
     pose = (ox + distance * math.cos(azimuth), oy + distance * math.sin(azimuth), azimuth + math.pi)
     world.teleport(pose, ROBOT.look_at(pose, (ox, oy, 0.5 * world.scenario.height)))
@@ -69,22 +79,23 @@ def red_mask(image: np.ndarray) -> np.ndarray:
 # -- camera pose in rendered frames -----------------------------------------------------------
 
 
-@pytest.mark.parametrize("resolution", ["qvga", "vga"])
-def test_detected_aruco_corners_match_projection_of_true_camera_pose(resolution):
-    world = world_on_orbit("can", resolution, 0.9, 2.2)
+@pytest.mark.parametrize("resolution, robot", [("qvga", ROBOT), ("vga", ROBOT), ("vga", DISTORTED)],
+                         ids=["qvga", "vga", "vga-distorted"])
+def test_detected_aruco_corners_match_projection_of_true_camera_pose(resolution, robot):
+    world = world_on_orbit("can", resolution, 0.9, 2.2, robot=robot)
     frame = world.render()
     truth = world.truth()
     T_WC = np.array(truth["camera"]["T_WC"])
     assert truth["camera"]["stamp"] == frame.stamp
     # standing still: the reported kinematics are the true camera pose
     np.testing.assert_allclose(T_WC, planar(*truth["robot_pose"]) @ frame.T_BC, atol=1e-12)
-    np.testing.assert_allclose(frame.T_BC, ROBOT.camera_in_robot(frame.head_yaw, frame.head_pitch), atol=1e-12)
+    np.testing.assert_allclose(frame.T_BC, robot.camera_in_robot(frame.head_yaw, frame.head_pitch), atol=1e-12)
 
     # the localizer's detector (edge-line corners, agent/marker_corners.py): the renderer draws every corner where it projects
     params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
     found = LandmarkDetector(params, LANDMARKS, None).aruco_points(cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY))
     assert len(found.landmark_ids) >= 2
-    errors = np.linalg.norm(found.u - project(found.X, T_WC, resolution), axis=1)
+    errors = np.linalg.norm(found.u - project(found.X, T_WC, resolution, robot), axis=1)
     assert errors.max() < 0.8, errors
     assert np.median(errors) < 0.25, errors
 

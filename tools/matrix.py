@@ -76,7 +76,6 @@ import yaml
 
 from agent.camera import CameraModel
 from nao_core.config import ConfigError
-from nao_core.robot_model import load_robot_model
 from nao_sim.randomize import Randomizer, RandomWorld, WorldSpec, load_randomizer, random_world
 from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
@@ -185,7 +184,7 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
     capture sees it at the end of its exposure: the misalignment the carve suffers (with the camera's turn over the
     part of the exposure after the frame's stamp). ``poses``: the log's /agent/pose records."""
     stamps = {record["seq"]: record["stamp"] for record in poses}
-    camera = CameraModel.from_intrinsics(load_robot_model().camera.intrinsics(resolution))
+    camera = CameraModel.from_intrinsics(spec.station_robot().camera.intrinsics(resolution))
     true_camera = CameraModel.from_intrinsics(spec.robot.camera.intrinsics(resolution))
     points = spec.scenario.world_points()
     centre = np.array([[*spec.scenario.position, 0.5 * float(points[:, 2].max())]])
@@ -208,7 +207,7 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
 def focal_error(applied: List[dict], spec: WorldSpec, resolution: str) -> Tuple[float, bool]:
     """(max over axes of |s - s_true|, any applied): the focal scale error the mission ended with, from
     its /agent/self_calibration messages in log order (module docstring)."""
-    true, configured = spec.robot.camera.intrinsics(resolution), load_robot_model().camera.intrinsics(resolution)
+    true, configured = spec.robot.camera.intrinsics(resolution), spec.station_robot().camera.intrinsics(resolution)
     s_true = np.array([true.fx / configured.fx - 1.0, true.fy / configured.fy - 1.0])
     s = np.array(applied[-1]["error"][:2]) if applied else np.zeros(2)
     return float(np.abs(s - s_true).max()), bool(applied)
@@ -241,7 +240,7 @@ def tilt_error(poses: List[dict], reported_T_BC: Dict[int, list], spec: WorldSpe
     R = np.asarray(reported, dtype=float).reshape(4, 4)[:3, :3].T @ np.asarray(last["T_BC"], dtype=float).reshape(4, 4)[:3, :3]
     omega = cv2.Rodrigues(R)[0].ravel()  # optical axes: roll about z, pitch down about -x
     roll, pitch = spec.config.noise.mount_error
-    true, configured = spec.robot.camera.intrinsics(resolution), load_robot_model().camera.intrinsics(resolution)
+    true, configured = spec.robot.camera.intrinsics(resolution), spec.station_robot().camera.intrinsics(resolution)
     c_y = configured.cy + (applied[-1]["error"][3] if applied else 0.0)
     return abs(float(omega[2]) - roll), abs(float(-omega[0]) - (pitch - (true.cy - c_y) / true.fy))
 
@@ -267,7 +266,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     shutil.copyfile(spec.landmark_path, landmarks)
     override = out / "station.yaml"
     override.write_text(yaml.safe_dump({"station": {"landmark_map": str(landmarks.resolve()), "resolution": resolution},
-                                        "perception": {"object_color": spec.object_color}}))
+                                        "perception": {"object_color": spec.object_color}, **spec.station_overrides()}))
     world = RandomWorld(spec, resolution=resolution)
     monitor = _ClearanceMonitor(world)
     renders: Dict[float, np.ndarray] = {}  # capture stamp -> true T_WC of every image the stand-in renders
@@ -400,7 +399,9 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
         f"painted {', '.join(sorted(ranges.object_colors))} (a colour no ball of the map has, the station told it) with a gloss of "
         f"{ranges.object_gloss[0]:g}-{ranges.object_gloss[1]:g}, start pose "
         f"({ranges.start_distance[0]:g}-{ranges.start_distance[1]:g} m, object up to {math.degrees(ranges.start_bearing):.0f} deg off the heading), "
-        f"walking errors, sway, a camera calibration off by {100 * ranges.focal_error:g} % and {ranges.principal_error:g} px, the camera "
+        f"walking errors, sway, a camera calibration off by {100 * ranges.focal_error:g} % and {ranges.principal_error:g} px, a lens "
+        f"distortion within k1 +-{ranges.lens_distortion[0]:g}, k2 +-{ranges.lens_distortion[1]:g}, p1 and p2 +-{ranges.lens_distortion[2]:g} "
+        "(calibrated: the station told it), the camera "
         f"rolled up to {math.degrees(ranges.mount_error[0]):.1f} deg and pitched up to {math.degrees(ranges.mount_error[1]):.1f} deg on its mount "
         "(unreported), and a sensor "
         f"of {ranges.pixel_sigma[0]:g}-{ranges.pixel_sigma[1]:g} grey levels of noise, {ranges.blur_sigma[0]:g}-{ranges.blur_sigma[1]:g} px of blur "
