@@ -14,6 +14,11 @@ Azimuth of a ray in the world's horizontal plane::
 
     r_W = R_WC ray_C,   a = atan2(r_W.y, r_W.x)
 
+The lens's field: OpenCV's polynomial r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) (r the normalized
+radius) folds back beyond its maximum for some lenses (k1 = -0.12, k2 = -0.05: a point 57 deg off the
+axis lands in the image's corner), so a point is projected only within ``field_radius``, 1.1 times
+the largest undistorted radius of the image's corners: beyond, no pixel shows it.
+
 For a vertical cylinder, the extreme left/right silhouette pixels back-project to rays lying in
 the two vertical tangent planes, whatever the camera pitch, so their azimuths a_l > a_r give the
 apparent width delta = a_l - a_r and the bearing of the centre (a_l + a_r) / 2 exactly.
@@ -23,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -74,6 +80,18 @@ class CameraModel:
             return np.asarray(uv, dtype=float).reshape(-1, 2)
         return self.normalized(uv) @ self.K[:2, :2].T + self.K[:2, 2]
 
+    def distort(self, uv: np.ndarray) -> np.ndarray:
+        """Where the lens shows what the ideal pinhole of K shows at ``uv`` (N x 2): the inverse of
+        ``undistort``; NaN beyond the lens's field (``field_radius``)."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        if not np.any(self.dist):
+            return uv
+        normalized = (uv - self.K[:2, 2]) @ np.linalg.inv(self.K[:2, :2]).T
+        out = np.full(uv.shape, np.nan)
+        ok = np.hypot(normalized[:, 0], normalized[:, 1]) <= self.field_radius  # NaN pixels fail it too
+        out[ok] = self.project(np.column_stack([normalized[ok], np.ones(int(ok.sum()))]))
+        return out
+
     def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit rays in the optical frame for pixel coordinates ``uv`` (N x 2), distortion removed."""
         normalized = self.normalized(uv)
@@ -88,12 +106,23 @@ class CameraModel:
         uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
         return uv.reshape(-1, 2)
 
+    @cached_property
+    def field_radius(self) -> float:
+        """The normalized radius beyond which the lens shows nothing (module docstring); inf without distortion."""
+        if not np.any(self.dist):
+            return math.inf
+        corners = np.array([[0.0, 0.0], [self.width - 1.0, 0.0], [0.0, self.height - 1.0], [self.width - 1.0, self.height - 1.0]])
+        return 1.1 * float(np.linalg.norm(self.normalized(corners), axis=1).max())
+
     def project_world(self, points_W: np.ndarray, T_WC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels of world points and a mask of those in front of the camera (z_C > 0)."""
+        """Pixels of world points and a mask of those in front of the camera (z_C > 0) and within the
+        lens's field (``field_radius``); NaN pixels for the others."""
         T_CW = invert(T_WC)
         pts = np.asarray(points_W, dtype=np.float64).reshape(-1, 3)
         pc = pts @ T_CW[:3, :3].T + T_CW[:3, 3]
         in_front = pc[:, 2] > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            in_front &= np.hypot(pc[:, 0], pc[:, 1]) <= self.field_radius * pc[:, 2]
         uv = np.full((pts.shape[0], 2), np.nan)
         if in_front.any():
             uv[in_front] = self.project(pc[in_front])

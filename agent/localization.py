@@ -254,7 +254,8 @@ kinematics: in tests/test_pilot.py's sweep with frames 70 ms late, it moved 23 m
 its bearings instead, on every frame (station/pilot.py).
 
 Predicted precision (for the pilot and ``station check-layout``): from a pose and T_BC, the
-landmark points that would be detected (in the image with a margin, in front, facing the camera,
+landmark points that would be detected (in the image where the lens shows them, with a margin, in
+front, facing the camera,
 at least ``aruco_min_side_px`` / a disc of ``landmark_min_area``) give J and the fix covariance
 sigma_px^2 (J^T J)^-1 the measurement would have; ``best_landmark_view`` scans the head's range
 for the direction with the smallest predicted position std.
@@ -1627,7 +1628,8 @@ class RobotLocalizer:
             quads, depth = uv.reshape(-1, 4, 2), z.reshape(-1, 4)
             x, y = quads[..., 0], quads[..., 1]
             facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
-            inside = np.all((quads >= margin) & (quads <= size - 1 - margin), axis=(1, 2)) & np.all(depth > MIN_DEPTH, axis=1)
+            seen_at = self.camera.distort(uv).reshape(-1, 4, 2)  # where the lens shows them (NaN: not at all)
+            inside = np.all((seen_at >= margin) & (seen_at <= size - 1 - margin), axis=(1, 2)) & np.all(depth > MIN_DEPTH, axis=1)
             side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
             ok = facing & inside & (np.nan_to_num(side) >= self.params.aruco_min_side_px)
             chosen.append(corners.reshape(-1, 4, 3)[ok].reshape(-1, 3))
@@ -1640,7 +1642,8 @@ class RobotLocalizer:
                 radius = self.camera.K[0, 0] * diameters / (2.0 * z)
             area = math.pi * radius**2
             rim = (margin + radius)[:, None]  # a disc cut by the border is dropped by the detector
-            inside = np.all((uv >= rim) & (uv <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
+            seen_at = self.camera.distort(uv)
+            inside = np.all((seen_at >= rim) & (seen_at <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
             seen = inside & (area >= self.perception.landmark_min_area)
             chosen.append(L[seen])
             landmarks += int(seen.sum())

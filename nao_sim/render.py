@@ -497,7 +497,7 @@ class Canvas:
         pinhole = n.reshape(-1, 2) * (intr.fx, intr.fy) + (intr.cx, intr.cy)
         if not np.all(np.isfinite(pinhole)):
             raise ValueError(f"camera distortion {list(intr.dist)}: the lens model does not invert over the image")
-        x0, y0 = np.floor(pinhole.min(axis=0)).astype(int) - 2  # two pixels of margin for the bilinear lookup
+        x0, y0 = np.floor(pinhole.min(axis=0)).astype(int) - 2  # margins for the bicubic lookup's 4 x 4 pixels
         x1, y1 = np.ceil(pinhole.max(axis=0)).astype(int) + 3
         canvas = replace(intr, width=int(x1 - x0), height=int(y1 - y0), cx=float(intr.cx - x0), cy=float(intr.cy - y0),
                          dist=(0.0, 0.0, 0.0, 0.0, 0.0))
@@ -514,7 +514,7 @@ class Canvas:
 def _frustum_normals(intr: CameraIntrinsics) -> np.ndarray:
     """Inward unit normals (optical frame) of the planes z = 0 and of the image borders.
 
-    A point p is in view when n . p >= 0 for all five (distortion ignored: a culling test only).
+    A point p is in view when n . p >= 0 for all five (of a pinhole: the renderer's canvas).
     """
     n = np.array([
         [0.0, 0.0, 1.0],

@@ -73,6 +73,28 @@ def test_undistorted_pixels_are_where_the_pinhole_of_k_sees_the_ray(u, v):
     assert np.allclose(cam.undistort(np.array([[u, v]])), pinhole.project(ray), atol=1e-6)
 
 
+@settings(max_examples=100, deadline=None)
+@given(u=st.floats(0, 639), v=st.floats(0, 479))
+def test_distort_inverts_undistort_over_the_image(u, v):
+    cam = distorted_camera()
+    assert np.allclose(cam.distort(cam.undistort(np.array([[u, v]]))), [[u, v]], atol=1e-6)
+
+
+def test_a_folding_lens_shows_nothing_beyond_its_field():
+    """k1 = -0.12, k2 = -0.05: OpenCV's polynomial folds back beyond r = 1.19 and puts a point 57 deg
+    off the axis inside the image's corner; no pixel shows it, and project_world says so."""
+    cam = CameraModel(K=distorted_camera().K, dist=np.array([-0.12, -0.05, 0.0, 0.0, 0.0]), width=640, height=480)
+    r = 1.55  # normalized radius: 57 deg off the axis, along the image's diagonal
+    far = np.array([[r * 0.8, r * 0.6, 1.0]])
+    folded = cam.project(far)[0]
+    assert 0 <= folded[0] < 640 and 0 <= folded[1] < 480  # the fold is real
+    uv, shown = cam.project_world(far, np.eye(4))
+    assert not shown[0] and np.all(np.isnan(uv))
+    assert np.all(np.isnan(cam.distort(cam.K[:2, :2] @ far[0, :2] + cam.K[:2, 2])))
+    corner = cam.pixels_to_rays(np.array([[639.0, 479.0]]))  # the image's own corner stays in the field
+    assert cam.project_world(corner * 2.0, np.eye(4))[1].all()
+
+
 def test_no_points_give_no_pixels_not_an_error():
     """OpenCV's undistortPoints and projectPoints return None for no points: a frame without a landmark."""
     cam = distorted_camera()
