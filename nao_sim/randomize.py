@@ -65,6 +65,10 @@ class Layout:
     half_size: float = field(metadata=bounds(1.0, 50.0))  # the room it was written for, m
 
 
+LENS_CORNER_RADIUS = 0.68  # normalized radius of a NAO top camera image's corner (57 x 44 deg: 400 px / 587 px at VGA)
+LENS_FIELD = 1.1  # the lens model must invert this far beyond it (agent/camera.py, "The lens's field")
+
+
 @dataclass(frozen=True)
 class Randomizer:
     layouts: Dict[str, Layout]
@@ -97,6 +101,15 @@ class Randomizer:
     drawn_layout: DrawnLayoutParams
 
     def __post_init__(self) -> None:
+        k1, k2, _ = self.lens_distortion
+        r = np.linspace(0.0, 3.0, 3001)  # undistorted normalized radii, the worst lens (a barrel of both terms)
+        r_d = r * (1.0 - k1 * r**2 - k2 * r**4)
+        fold = int(np.argmax(np.diff(r_d) <= 0.0)) if np.any(np.diff(r_d) <= 0.0) else len(r) - 1
+        corner = int(np.argmax(r_d >= LENS_CORNER_RADIUS))
+        if r_d[fold] < LENS_CORNER_RADIUS or LENS_FIELD * r[corner] > r[fold]:
+            raise ValueError(f"randomizer: lens_distortion {list(self.lens_distortion)}: a lens of k1 = {-k1:g}, k2 = {-k2:g} folds "
+                             f"back at r = {r[fold]:.2f}, before {LENS_FIELD:g} x the radius its image corner ({LENS_CORNER_RADIUS:g} "
+                             "distorted) comes from: its model does not invert over the field")
         if not self.layouts or not self.objects:
             raise ValueError("randomizer: 'layouts' and 'objects' must not be empty")
         if not self.floor_colors or not self.wall_colors or not self.object_colors:

@@ -226,6 +226,20 @@ def test_a_malformed_ranges_file_is_refused_by_name(tmp_path, capsys):
     assert not (tmp_path / "runs").exists() and not (tmp_path / "doc.md").exists()
 
 
+def test_a_lens_range_whose_model_folds_inside_the_image_is_refused(tmp_path, capsys):
+    """k1 = -0.25 with k2 = -0.1: OpenCV's polynomial turns back before the image's corner (its largest
+    radius 0.66 < 0.68), so no undistortion exists there and the renderer could not draw the frame."""
+    from tools.matrix import main
+
+    bad = tmp_path / "ranges.yaml"
+    bad.write_text("randomizer:\n  lens_distortion: [0.25, 0.1, 0.0]\n")
+    with pytest.raises(SystemExit) as stop:
+        main(["--ranges", str(bad), "--count", "1", "--out", str(tmp_path / "runs"), "--doc", str(tmp_path / "doc.md")])
+    assert stop.value.code == 2
+    assert "lens_distortion [0.25, 0.1, 0.0]: a lens of k1 = -0.25, k2 = -0.1 folds back" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
 def test_a_ranges_file_naming_an_unknown_object_is_refused_by_name(tmp_path, capsys):
     """An object that is no scenario of config/sim.yaml: exit 2 naming the file and the object before any
     mission, not a KeyError when a world draws it."""
