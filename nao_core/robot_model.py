@@ -22,6 +22,8 @@ The yaw-dependent pitch limits are Aldebaran's head anti-collision table, linear
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -136,6 +138,11 @@ class RobotModel:
     camera: CameraSpec
     head: HeadLimits
     walk: WalkLimits
+
+    def with_lens(self, dist: Sequence[float]) -> "RobotModel":
+        """The same robot with the lens distortion ``dist`` (k1, k2, p1, p2, k3) at every resolution."""
+        resolutions = {name: dataclasses.replace(intr, dist=tuple(dist)) for name, intr in self.camera.resolutions.items()}
+        return dataclasses.replace(self, camera=dataclasses.replace(self.camera, resolutions=resolutions))
 
     def camera_in_robot(self, yaw: float, pitch: float) -> np.ndarray:
         """T_BC (optical convention) for the given head angles: the kinematic chain of the docstring."""

@@ -160,9 +160,7 @@ class WorldSpec:
 
     def station_robot(self) -> RobotModel:
         """The configured robot model (NAO V6) as the station holds it in this world (``station_overrides``)."""
-        robot = load_robot_model()
-        resolutions = {name: dataclasses.replace(intr, dist=self.lens) for name, intr in robot.camera.resolutions.items()}
-        return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, resolutions=resolutions))
+        return load_robot_model().with_lens(self.lens)
 
     def summary(self) -> Dict[str, object]:
         dyn, noise = self.config.dynamics, self.config.noise

@@ -220,8 +220,7 @@ def test_a_calibrated_lens_distortion_is_removed_from_markers_and_balls(params, 
     lens, the same frames' fixes are worse (the lens moves points near the image's corners by up to
     20 px). A pincushion narrows the field: landmarks near the corners leave it, and the two-landmark
     fixes that remain reach 3-7 cm (3.6 cm without a lens: docs/landmarks.md)."""
-    resolutions = {k: dataclasses.replace(v, dist=dist) for k, v in robot.camera.resolutions.items()}
-    lensed = dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, resolutions=resolutions))
+    lensed = robot.with_lens(dist)
     config = load_sim_config().with_layout(str(CONFIG_DIR / "landmarks" / "mixed.yaml"), LAYOUTS["mixed"])
     world = SimWorld("can", lensed, "vga", seed=12, config=config)
     told, untold = (RobotLocalizer(params, world.landmarks, camera_of(r, "vga"), perception) for r in (lensed, robot))

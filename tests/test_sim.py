@@ -46,8 +46,7 @@ def planar(x: float, y: float, theta: float) -> np.ndarray:
 
 def distorted(robot, dist=(-0.12, 0.05, 0.002, -0.0015, 0.0)):
     """The robot with a lens distortion (k1, k2, p1, p2, k3) at every resolution: a barrel, as webcams have."""
-    resolutions = {k: dataclasses.replace(v, dist=dist) for k, v in robot.camera.resolutions.items()}
-    return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, resolutions=resolutions))
+    return robot.with_lens(dist)
 
 
 DISTORTED = distorted(ROBOT)
