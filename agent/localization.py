@@ -277,6 +277,7 @@ from agent.camera_tilt import CameraTilt
 from agent.keep_in import KeepIn
 from agent.marker_corners import refine_corners
 from agent.perception import ColorClass, PerceptionParams, check_image, color_mask
+from agent.pose_smoother import TrackPoint, smooth_track
 from nao_core.config import bounds
 from nao_core.geometry import (
     Pose,
@@ -996,6 +997,8 @@ class RobotLocalizer:
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
         # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
+        self.track: List[TrackPoint] = []  # every frame seen with a pose, for ``smoothed_track``
+        self._segment = 0  # the track's unbroken stretch (``reset`` starts the next)
 
     @property
     def _moving(self) -> bool:
@@ -1009,6 +1012,7 @@ class RobotLocalizer:
         self._augmented_total = _unknown_pose(self._augmented_total[3:, 3:])
         self.rejected_jumps, self._rejected = 0, None
         self._last_camera, self.camera_rate = None, None  # the last frame's camera says nothing of the next one's rate
+        self._segment += 1
 
     @property
     def pose(self) -> Optional[Pose]:
@@ -1106,16 +1110,26 @@ class RobotLocalizer:
         self._last_camera = (stamp, R_OC)
         fix = self.measure(image, T_BC, prior, self.params.roll_sigma if self._moving else self.params.roll_sigma_still,
                            np.zeros(3) if self.camera_rate is None else self.camera_rate, self.covariance)
-        if fix is None:
-            return None
-        if prior is not None and not self._accept_jump(prior, fix, odom):
+        if fix is not None and prior is not None and not self._accept_jump(prior, fix, odom):
             self.no_fix_reason = f"jump of {math.hypot(fix.pose[0] - prior[0], fix.pose[1] - prior[1]):.2f} m from the prior rejected"
-            return None
-        self._fuse(fix, prior, odom)
-        if not self._moving:  # the sway is out of the fit: its tilt is the mount's
-            frame = np.diag([self.params.roll_sigma_still, self.params.pitch_sigma]) ** 2
-            self.tilt.update(self.tilt.correct(T_BC), fix.tilt_information, fix.tilt_evidence, frame)
+            fix = None
+        if fix is not None:
+            self._fuse(fix, prior, odom)
+            if not self._moving:  # the sway is out of the fit: its tilt is the mount's
+                frame = np.diag([self.params.roll_sigma_still, self.params.pitch_sigma]) ** 2
+                self.tilt.update(self.tilt.correct(T_BC), fix.tilt_information, fix.tilt_evidence, frame)
+        pose = self.pose_at(odom)
+        if pose is not None:
+            factor = fix is not None and not fix.conditioned  # a conditioned fix holds the prior's information too
+            self.track.append(TrackPoint(stamp, odom, pose, self._segment, fix.pose if factor else None,
+                                         fix.covariance + self._floor if factor else None))
         return fix
+
+    def smoothed_track(self) -> np.ndarray:
+        """The poses of ``track``'s frames smoothed over every fix and the odometry between them (N x 3,
+        agent/pose_smoother.py), with the walk's scales as estimated now."""
+        p = self.params
+        return smooth_track(self.track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
 
     def heading_rate(self) -> Optional[float]:
         """rad/s: how fast the camera turned about the vertical at the last frame (``camera_rate`` in the

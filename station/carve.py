@@ -2,8 +2,8 @@
 
 The keyframes the run chose (``/agent/keyframe``: frame sequence number, T_WC and the predicted
 object pixel that picked the blob) are carved again from the logged JPEGs: silhouette by the run's
-perception parameters, volume around the
-run's final object estimate, the given voxel edge and tolerance (defaults: the run's). With the
+perception parameters, pose the smoothed one the final carve used (``/station/keyframe_poses``,
+agent/pose_smoother.py; logs without it: the keyframe's own), volume around the run's final object estimate, the given voxel edge and tolerance (defaults: the run's). With the
 run's parameters this reproduces the run's model (carving does not depend on the order of views).
 """
 
@@ -25,7 +25,7 @@ from nao_core.protocol import FrameMeta, decode
 from station.carving_worker import View, carve_views
 from station.mcap_log import LogError, read_log
 from station.runlog import load_recorded
-from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME
+from station.topics import EKF, FRAME_IMAGE, FRAME_META, KEYFRAME, KEYFRAME_POSES
 
 
 def keyframe_camera(camera: CameraModel, keyframe: Dict) -> CameraModel:
@@ -44,10 +44,13 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
     camera = CameraModel.from_intrinsics(setup.info.intrinsics)
     wanted: Dict[int, Dict] = {}
     estimate = None
-    for message in read_log(log_path, topics={KEYFRAME, EKF}):
+    smoothed: Dict[int, List[float]] = {}  # the final carve's poses (station/run.py), when the run logged them
+    for message in read_log(log_path, topics={KEYFRAME, EKF, KEYFRAME_POSES}):
         payload = message.json()
         if message.topic == KEYFRAME:
             wanted[payload["seq"]] = payload
+        elif message.topic == KEYFRAME_POSES:
+            smoothed = {int(k["seq"]): k["T_WC"] for k in payload["keyframes"]}
         elif payload["x"] is not None:
             estimate = payload
     if not wanted or estimate is None:
@@ -67,7 +70,8 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
                 predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose
                 if silhouette is not None:
-                    views.append((silhouette.mask, keyframe_camera(camera, keyframe), np.asarray(keyframe["T_WC"], dtype=float).reshape(4, 4)))
+                    T_WC = smoothed.get(seq, keyframe["T_WC"])
+                    views.append((silhouette.mask, keyframe_camera(camera, keyframe), np.asarray(T_WC, dtype=float).reshape(4, 4)))
                     images.append(image)
                     qualities.append(float(keyframe.get("quality", 1.0)))  # logs before agent/keyframes.py: all alike
                 bar.update()

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -71,21 +71,26 @@ class CarvingWorker:
         self.views: List[View] = []
         self.images: List[Optional[np.ndarray]] = []  # the keyframes' BGR images, for the mesh's colours
         self.qualities: List[float] = []  # agent/keyframes.py, for the final choice of views
+        self.seqs: List[int] = []  # each view's frame
         self.live: Optional[VoxelCarver] = None
         self.error: Optional[str] = None
         self._on_progress = on_progress
-        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], float, CameraModel]]]" = queue.Queue()
+        self._queue: "queue.Queue[Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], float, CameraModel, int]]]" = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="carving", daemon=True)
         self._thread.start()
 
     def submit(self, mask: np.ndarray, T_WC: np.ndarray, x: np.ndarray, P: np.ndarray,
-               image: Optional[np.ndarray] = None, quality: float = 1.0, camera: Optional[CameraModel] = None) -> None:
-        """Queue a keyframe; ``camera``: the intrinsics it was seen with (default: the worker's)."""
-        self._queue.put((mask, T_WC, x.copy(), P.copy(), image, quality, camera or self.camera))
+               image: Optional[np.ndarray] = None, quality: float = 1.0, camera: Optional[CameraModel] = None,
+               seq: int = -1) -> None:
+        """Queue a keyframe; ``camera``: the intrinsics it was seen with (default: the worker's), ``seq``
+        its frame's (for ``finish``'s poses)."""
+        self._queue.put((mask, T_WC, x.copy(), P.copy(), image, quality, camera or self.camera, seq))
 
-    def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], timeout: float = 60.0) -> Optional[VoxelCarver]:
+    def finish(self, x: Optional[np.ndarray], P: Optional[np.ndarray], poses: Optional[Dict[int, np.ndarray]] = None,
+               timeout: float = 60.0) -> Optional[VoxelCarver]:
         """Stop the worker and carve the final model (None without keyframes or an estimate, or when the
-        volume is refused: ``error`` says why)."""
+        volume is refused: ``error`` says why); ``poses``: T_WC by frame seq, replacing the views' own
+        (the smoothed keyframe poses, agent/pose_smoother.py)."""
         self._queue.put(None)
         self._thread.join(timeout)
         if x is None or not self.views:
@@ -94,8 +99,10 @@ class CarvingWorker:
         if std > self.max_position_std:
             self.error = f"no final model: centre std {std:.3f} m > {self.max_position_std:g} m"
             return None
+        poses = poses or {}
+        views = [(mask, camera, poses.get(seq, T_WC)) for (mask, camera, T_WC), seq in zip(self.views, self.seqs)]
         try:
-            return carve_views(self.views, x, P, self.params, images=self.images if any(i is not None for i in self.images) else (),
+            return carve_views(views, x, P, self.params, images=self.images if any(i is not None for i in self.images) else (),
                                qualities=self.qualities)
         except ValueError as exc:  # e.g. the estimate is still too uncertain for a bounded volume
             self.error = f"final carving failed: {exc}"
@@ -106,11 +113,12 @@ class CarvingWorker:
             item = self._queue.get()
             if item is None:
                 return
-            mask, T_WC, x, P, image, quality, camera = item
+            mask, T_WC, x, P, image, quality, camera, seq = item
             view = (mask, camera, T_WC)
             self.views.append(view)
             self.images.append(image)
             self.qualities.append(quality)
+            self.seqs.append(seq)
             if self.error is not None:
                 continue
             try:

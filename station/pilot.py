@@ -168,7 +168,7 @@ from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
 from agent.self_calibration import SelfCalibration
 from agent.standstill import CalibrationStandstill
-from nao_core.geometry import Pose, camera_in_world, compose, relative, wrap_angle
+from nao_core.geometry import Pose, camera_in_world, compose, invert, planar_transform, relative, wrap_angle
 from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel, head_at
 from station.config import StationConfig
@@ -207,6 +207,7 @@ class KeyframeView:
     image: Optional[np.ndarray] = None  # the frame (BGR), for the model's vertex colours
     quality: float = 1.0  # agent/keyframes.py: pose precision x silhouette quality at capture
     camera: Optional[CameraModel] = None  # the intrinsics it was seen with (self-calibration), None: the bridge's
+    seq: int = -1  # the frame's
 
 
 class Lookout(NamedTuple):
@@ -295,6 +296,7 @@ class Pilot:
         self._covered: Tuple[int, float] = (0, 0.0)  # the most bins the termination saw seen, and when
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
+        self._keyframe_frames: Dict[int, Tuple[float, np.ndarray]] = {}  # frame seq -> (capture stamp, T_WC taken with)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -474,7 +476,7 @@ class Pilot:
                              turn_rate, stamp_variance, floor)
             if self.anchored and not self._calibration_standstill(t) and self._gaze_on_object(t, (meta.head_yaw, meta.head_pitch)):  # top/bottom-cut views still carve
                 with guarded("keyframe"):
-                    self._maybe_keyframe(step, t, meta.seq, cam, silhouette.mask, T_WC, predicted, image, fix, stamp_variance)
+                    self._maybe_keyframe(step, t, meta.seq, meta.stamp, cam, silhouette.mask, T_WC, predicted, image, fix, stamp_variance)
         if self.anchored:
             with guarded("coverage"):
                 self.coverage.add(np.asarray(cam))
@@ -578,7 +580,7 @@ class Pilot:
         uv, in_front = self.camera.project_world(np.array([[x[0], x[1], self.config.head_servo.aim_height]]), T_WC)
         return (float(uv[0, 0]), float(uv[0, 1])) if in_front[0] else None
 
-    def _maybe_keyframe(self, step: Step, t: float, seq: int, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
+    def _maybe_keyframe(self, step: Step, t: float, seq: int, stamp: float, cam: Cam, mask: np.ndarray, T_WC: np.ndarray,
                         predicted: Optional[Tuple[float, float]], image: Optional[np.ndarray] = None,
                         fix: Optional[PoseFix] = None, stamp_variance: float = 0.0) -> None:
         if not self.ekf.initialized:
@@ -595,8 +597,21 @@ class Pilot:
             refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, max(loc.pixel_sigma, fix.rms_px),
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
-        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera)
+        step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera, seq)
+        self._keyframe_frames[seq] = (stamp, T_WC)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
+
+    def smoothed_keyframes(self) -> Dict[int, np.ndarray]:
+        """T_WC of every keyframe (by frame seq) with its planar pose smoothed over the whole walk
+        (agent/pose_smoother.py): the T_WC it was taken with, moved by T(p_smoothed) T(p_filtered)^-1."""
+        track = self.localizer.track
+        smoothed = self.localizer.smoothed_track()
+        index = {point.stamp: j for j, point in enumerate(track)}
+        poses = {}
+        for seq, (stamp, T_WC) in self._keyframe_frames.items():
+            j = index.get(stamp)
+            poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
+        return poses
 
     # per tick ---------------------------------------------------------------------------------
 

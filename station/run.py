@@ -18,6 +18,8 @@ The log writes of a pass are queued and written, in order, once its commands are
 decision with ``stop`` sends a zero walk command; the robot is stopped before the loop returns, on
 every path: an exception from the pilot is logged on ``/station/error`` (with its traceback) and
 ends the run with outcome ``error``; a final carve that raises is reported in ``carving_error``.
+The final carve takes the keyframes' poses smoothed over the whole walk (agent/pose_smoother.py),
+logged on ``/station/keyframe_poses``; when smoothing fails, the poses they were taken with.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ from station.topics import (
     FRAME_META,
     INFO,
     INPUT,
+    KEYFRAME_POSES,
     REJECTED,
     SCENE_KEYFRAMES,
     SCENE_LANDMARKS,
@@ -159,7 +162,7 @@ class ControlLoop:
     def _final_carve(self, x: Optional[np.ndarray], P: Optional[np.ndarray]) -> Tuple[Any, Optional[str]]:
         """The final model, or None and why: whatever the carver raises, the run's outputs are written."""
         try:
-            carver = self.carving.finish(x, P)
+            carver = self.carving.finish(x, P, self._smoothed_keyframes())
             if carver is not None:
                 t = self.clock()
                 self.log.proto(SCENE_MODEL, foxglove.model(t, _glb(carver)), t)
@@ -167,6 +170,19 @@ class ControlLoop:
         except Exception as exc:  # noqa: BLE001 - the result must be written whatever the carver did
             traceback.print_exc()
             return None, f"final carving failed: {type(exc).__name__}: {exc}"
+
+    def _smoothed_keyframes(self) -> dict:
+        """The keyframes' smoothed T_WC by frame seq, logged; {} (the poses they were taken with) when
+        the smoothing raises."""
+        try:
+            poses = self.pilot.smoothed_keyframes()
+        except Exception as exc:  # noqa: BLE001 - the model is still carved, from the filter's poses
+            log.warning("keyframe poses not smoothed: %s: %s", type(exc).__name__, exc)
+            return {}
+        t = self.clock()
+        self.log.json(KEYFRAME_POSES, {"t": t, "keyframes": [{"seq": seq, "T_WC": np.asarray(T).ravel().tolist()}
+                                                              for seq, T in sorted(poses.items())]}, t, STATION_SCHEMA)
+        return poses
 
     # one pass -----------------------------------------------------------------------------------
 
@@ -270,7 +286,7 @@ class ControlLoop:
         self._later(self._annotate, step, t)
         if step.keyframe is not None:
             view = step.keyframe
-            self.carving.submit(view.mask, view.T_WC, view.x, view.P, view.image, view.quality, view.camera)
+            self.carving.submit(view.mask, view.T_WC, view.x, view.P, view.image, view.quality, view.camera, view.seq)
             self._keyframe_poses.append(view.T_WC)
             poses = list(self._keyframe_poses)
             self._later(lambda: self.log.proto(SCENE_KEYFRAMES, foxglove.frusta(t, self.camera, poses), t))

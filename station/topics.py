@@ -15,6 +15,7 @@ INPUT = "/station/input"  # journal of the inputs handed to the agent, in order
 REJECTED = "/station/rejected"  # messages that failed strict decoding
 CARVING = "/station/carving"  # live carving progress
 ERROR = "/station/error"  # an exception that ended the run, with its traceback
+KEYFRAME_POSES = "/station/keyframe_poses"  # the keyframes' T_WC smoothed at the end, which the final carve used
 # agent outputs (replay compares every topic under this prefix)
 AGENT_PREFIX = "/agent/"
 DECISION = "/agent/decision"

@@ -660,7 +660,7 @@ def test_a_turning_cameras_keyframe_weighs_its_stamp_error():
         mask = np.zeros((H, W), bool)
         mask[60:180, 140:180] = True
         variance = pilot._stamp_heading_variance(turn_rate, stamp_std)
-        pilot._maybe_keyframe(step, 1.0, 1, (0.0, 0.0, 0.0), mask, np.eye(4), None, stamp_variance=variance)
+        pilot._maybe_keyframe(step, 1.0, 1, 1.0, (0.0, 0.0, 0.0), mask, np.eye(4), None, stamp_variance=variance)
         qualities.append(next(o.quality for o in step.outputs if isinstance(o, KeyframeRecord)))
     sigma_0 = CONFIG.carving.keyframe_pose_std
     still = pose_quality(np.diag([0.002**2, 0.002**2, 0.002**2]), 0.6, sigma_0)

@@ -22,8 +22,8 @@ Measured against the simulator's truth:
 * pose error: median and 95th percentile of |(x, y) - (x_true, y_true)| and of |theta - theta_true|
   over the anchored poses the station logged (/agent/pose, at each frame's capture stamp), the truth
   interpolated at that stamp from the same samples (the stand-in's world runs on this clock);
-* keyframe misalignment: per keyframe (/agent/keyframe), the distance (px) between where its logged
-  T_WC and the true camera of that capture (recorded at each render) project the object's centre
+* keyframe misalignment: per keyframe (/agent/keyframe), the distance (px) between where the T_WC the
+  final carve used (smoothed, /station/keyframe_poses; else the keyframe's own) and the true camera of that capture (recorded at each render) project the object's centre
   at mid-height: what the carve's intersection of silhouettes suffers from;
 * the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
   the station's final decision, and
@@ -81,7 +81,7 @@ from nao_sim.standin import StandIn
 from station.carve import keyframe_camera
 from station.config import load_station_config
 from station.mcap_log import read_log
-from station.topics import DECISION, FRAME_META, KEYFRAME, POSE, SELF_CALIBRATION
+from station.topics import DECISION, FRAME_META, KEYFRAME, KEYFRAME_POSES, POSE, SELF_CALIBRATION
 from tools.bench import BEGIN, END, section
 
 BLURRED = 0.7  # px at VGA: worlds blurred at least this much are counted apart in the table
@@ -190,8 +190,10 @@ def keyframe_shifts(log: Path, poses: List[dict], renders: Dict[float, np.ndarra
     centre = np.array([[*spec.scenario.position, 0.5 * float(points[:, 2].max())]])
     captured = np.array(sorted(renders))
     shifts = []
+    smoothed = {int(k["seq"]): k["T_WC"] for message in read_log(log, topics={KEYFRAME_POSES}) for k in message.json()["keyframes"]}
     for message in read_log(log, topics={KEYFRAME}):
         record = message.json()
+        record["T_WC"] = smoothed.get(record["seq"], record["T_WC"])  # the pose the final carve used
         stamp = stamps.get(record["seq"])
         if stamp is None or not len(captured):
             continue
