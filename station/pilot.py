@@ -39,7 +39,8 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    pose's heading variance includes the filter's (w sigma_s)^2: a turning camera's
                    stamp error misplaces its silhouette as a heading error does); a
                    keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
-                   against that fix's points (agent/keyframe_pose.py)
+                   against that fix's points (agent/keyframe_pose.py); at the end every keyframe's
+                   planar pose is smoothed over all fixes (``smoothed_keyframes``, agent/pose_smoother.py)
 
 Re-anchoring: every filter measurement is also kept with its camera in the odometry frame O (the
 last ``VIEWS_KEPT``); before the first fix the filter runs in O. At the first fix, with the
