@@ -39,8 +39,9 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    pose's heading variance includes the filter's (w sigma_s)^2: a turning camera's
                    stamp error misplaces its silhouette as a heading error does); a
                    keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
-                   against that fix's points (agent/keyframe_pose.py); at the end every keyframe's
-                   planar pose is smoothed over all fixes (``smoothed_keyframes``, agent/pose_smoother.py)
+                   against that fix's points (agent/keyframe_pose.py); at the end the planar pose
+                   of every keyframe without one is smoothed over all fixes (``smoothed_keyframes``,
+                   agent/pose_smoother.py)
 
 Re-anchoring: every filter measurement is also kept with its camera in the odometry frame O (the
 last ``VIEWS_KEPT``); before the first fix the filter runs in O. At the first fix, with the
@@ -297,7 +298,7 @@ class Pilot:
         self._covered: Tuple[int, float] = (0, 0.0)  # the most bins the termination saw seen, and when
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
-        self._keyframe_frames: Dict[int, Tuple[float, np.ndarray]] = {}  # frame seq -> (capture stamp, T_WC taken with)
+        self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # frame seq -> (capture stamp, T_WC taken with, fix on it)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -599,18 +600,20 @@ class Pilot:
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
         step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera, seq)
-        self._keyframe_frames[seq] = (stamp, T_WC)
+        self._keyframe_frames[seq] = (stamp, T_WC, fix is not None)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
 
     def smoothed_keyframes(self) -> Dict[int, np.ndarray]:
-        """T_WC of every keyframe (by frame seq) with its planar pose smoothed over the whole walk
-        (agent/pose_smoother.py): the T_WC it was taken with, moved by T(p_smoothed) T(p_filtered)^-1."""
+        """T_WC of every keyframe (by frame seq) for the final carve: one without a fix on its frame has
+        its planar pose smoothed over the whole walk (agent/pose_smoother.py), the T_WC it was taken with
+        moved by T(p_smoothed) T(p_filtered)^-1; one with a fix keeps its own, refined against the
+        frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md)."""
         track = self.localizer.track
         smoothed = self.localizer.smoothed_track()
         index = {point.stamp: j for j, point in enumerate(track)}
         poses = {}
-        for seq, (stamp, T_WC) in self._keyframe_frames.items():
-            j = index.get(stamp)
+        for seq, (stamp, T_WC, fixed) in self._keyframe_frames.items():
+            j = None if fixed else index.get(stamp)
             poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
         return poses
 

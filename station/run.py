@@ -18,8 +18,9 @@ The log writes of a pass are queued and written, in order, once its commands are
 decision with ``stop`` sends a zero walk command; the robot is stopped before the loop returns, on
 every path: an exception from the pilot is logged on ``/station/error`` (with its traceback) and
 ends the run with outcome ``error``; a final carve that raises is reported in ``carving_error``.
-The final carve takes the keyframes' poses smoothed over the whole walk (agent/pose_smoother.py),
-logged on ``/station/keyframe_poses``; when smoothing fails, the poses they were taken with.
+The final carve takes the keyframes' poses from ``Pilot.smoothed_keyframes`` (those without a fix
+on their frame smoothed over the whole walk, agent/pose_smoother.py), logged on
+``/station/keyframe_poses``; when smoothing fails, the poses they were taken with.
 """
 
 from __future__ import annotations
@@ -172,8 +173,8 @@ class ControlLoop:
             return None, f"final carving failed: {type(exc).__name__}: {exc}"
 
     def _smoothed_keyframes(self) -> dict:
-        """The keyframes' smoothed T_WC by frame seq, logged; {} (the poses they were taken with) when
-        the smoothing raises."""
+        """The keyframes' T_WC for the final carve by frame seq (``Pilot.smoothed_keyframes``), logged; {}
+        (the poses they were taken with) when the smoothing raises."""
         try:
             poses = self.pilot.smoothed_keyframes()
         except Exception as exc:  # noqa: BLE001 - the model is still carved, from the filter's poses

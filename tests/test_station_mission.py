@@ -50,7 +50,7 @@ from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 from station.launch import free_port
 from station.mcap_log import read_log
-from station.topics import CMD_WALK, DECISION, KEYFRAME, KEYFRAME_POSES, STATE, TRUTH
+from station.topics import CMD_WALK, DECISION, KEYFRAME, KEYFRAME_POSES, POSE, STATE, TRUTH
 
 pytestmark = pytest.mark.serial  # missions' processes: run alone (Makefile test)
 
@@ -274,14 +274,18 @@ def test_the_offline_carve_is_watertight_holds_the_object_and_is_carved_around_i
 
 def test_the_final_carve_logs_a_smoothed_pose_for_every_keyframe(ci_run):
     """The poses the final carve used (agent/pose_smoother.py), one per keyframe, each a planar move of
-    the pose it was taken with (the smoothing moves x, y and the heading only); the offline carve
-    above reproduces the run's model from them."""
+    the pose it was taken with (the smoothing moves x, y and the heading only), none for a keyframe
+    with a fix on its frame; the offline carve above reproduces the run's model from them."""
     run = ci_run
     taken = {m.json()["seq"]: np.reshape(m.json()["T_WC"], (4, 4)) for m in read_log(run / "run.mcap", topics={KEYFRAME})}
     [record] = [m.json() for m in read_log(run / "run.mcap", topics={KEYFRAME_POSES})]
+    fixed = {m.json()["seq"] for m in read_log(run / "run.mcap", topics={POSE}) if m.json()["landmark_fix"]}
     smoothed = {k["seq"]: np.reshape(k["T_WC"], (4, 4)) for k in record["keyframes"]}
     assert taken and smoothed.keys() == taken.keys()
     for seq, T in smoothed.items():
+        if seq in fixed:
+            np.testing.assert_array_equal(T, taken[seq])
+            continue
         D = T @ np.linalg.inv(taken[seq])  # = T(p_smoothed) T(p_filtered)^-1
         np.testing.assert_allclose(D[2], [0.0, 0.0, 1.0, 0.0], atol=1e-9)
         np.testing.assert_allclose(D[:3, :3] @ D[:3, :3].T, np.eye(3), atol=1e-9)
