@@ -35,7 +35,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from nao_core.geometry import Pose
+from nao_core.geometry import Pose, wrap_angle
 
 STEP_FLOOR = 1e-4  # eps: (m, rad) of noise every step keeps, so a standing robot's steps stay finite in the cost
 
@@ -52,15 +52,11 @@ class TrackPoint:
     fix_covariance: Optional[np.ndarray] = None  # 3 x 3, what the filter fused it with
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise (-a) (+) b for N x 3 arrays of poses."""
+    """Row-wise (-a) (+) b for N x 3 arrays of poses (nao_core.geometry.relative, vectorized)."""
     c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[:, 2] - a[:, 2])])
+    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[:, 2] - a[:, 2])])
 
 
 def _whitener(covariance: np.ndarray) -> np.ndarray:
@@ -90,9 +86,9 @@ def smooth_segment(track: Sequence[TrackPoint], scale: Sequence[float], translat
     def residuals(v: np.ndarray) -> np.ndarray:
         p = v.reshape(-1, 3)
         odometry = _relative(p[:-1], p[1:]) - steps
-        odometry[:, 2] = _wrap(odometry[:, 2])
+        odometry[:, 2] = wrap_angle(odometry[:, 2])
         e = p[fix_index] - z
-        e[:, 2] = _wrap(e[:, 2])
+        e[:, 2] = wrap_angle(e[:, 2])
         return np.concatenate([(odometry / step_std).ravel(), np.einsum("kij,kj->ki", W, e).ravel()])
 
     sparsity = lil_matrix((3 * (n - 1) + 3 * len(fixes), 3 * n), dtype=np.int8)
@@ -103,7 +99,7 @@ def smooth_segment(track: Sequence[TrackPoint], scale: Sequence[float], translat
     solution = least_squares(residuals, poses.ravel(), jac_sparsity=sparsity, loss="soft_l1", f_scale=outlier_sigmas,
                              x_scale="jac", method="trf")
     smoothed = solution.x.reshape(-1, 3)
-    smoothed[:, 2] = _wrap(smoothed[:, 2])
+    smoothed[:, 2] = wrap_angle(smoothed[:, 2])
     return smoothed
 
 

@@ -2,9 +2,9 @@
 
 The keyframes the run chose (``/agent/keyframe``: frame sequence number, T_WC and the predicted
 object pixel that picked the blob) are carved again from the logged JPEGs: silhouette by the run's
-perception parameters, pose the smoothed one the final carve used (``/station/keyframe_poses``,
-agent/pose_smoother.py; logs without it: the keyframe's own), volume around the run's final object estimate, the given voxel edge and tolerance (defaults: the run's). With the
-run's parameters this reproduces the run's model (carving does not depend on the order of views).
+perception parameters, pose the one the final carve used (``/station/keyframe_poses``,
+agent/pose_smoother.py; logs without it: the keyframe's own), volume around the run's final object
+estimate, the given voxel edge and tolerance (defaults: the run's). With the run's parameters this reproduces the run's model (carving does not depend on the order of views).
 """
 
 from __future__ import annotations

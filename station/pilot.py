@@ -608,13 +608,16 @@ class Pilot:
         its planar pose smoothed over the whole walk (agent/pose_smoother.py), the T_WC it was taken with
         moved by T(p_smoothed) T(p_filtered)^-1; one with a fix keeps its own, refined against the
         frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md)."""
+        poses = {seq: T_WC for seq, (_, T_WC, fixed) in self._keyframe_frames.items() if fixed}
+        if len(poses) == len(self._keyframe_frames):
+            return poses  # nothing to smooth: the solve is skipped
         track = self.localizer.track
         smoothed = self.localizer.smoothed_track()
         index = {point.stamp: j for j, point in enumerate(track)}
-        poses = {}
         for seq, (stamp, T_WC, fixed) in self._keyframe_frames.items():
-            j = None if fixed else index.get(stamp)
-            poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
+            if not fixed:
+                j = index.get(stamp)
+                poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
         return poses
 
     # per tick ---------------------------------------------------------------------------------

@@ -23,8 +23,8 @@ Measured against the simulator's truth:
   over the anchored poses the station logged (/agent/pose, at each frame's capture stamp), the truth
   interpolated at that stamp from the same samples (the stand-in's world runs on this clock);
 * keyframe misalignment: per keyframe (/agent/keyframe), the distance (px) between where the T_WC the
-  final carve used (smoothed, /station/keyframe_poses; else the keyframe's own) and the true camera of that capture (recorded at each render) project the object's centre
-  at mid-height: what the carve's intersection of silhouettes suffers from;
+  final carve used (/station/keyframe_poses; else the keyframe's own) and the true camera of that
+  capture (recorded at each render) project the object's centre at mid-height: what the carve's intersection of silhouettes suffers from;
 * the stop: the first ALMotion call that stops the walk (stopMove, killMove, move(0, 0, 0)) after
   the station's final decision, and
   whether the robot is at rest when the station has exited;
