@@ -14,7 +14,11 @@ Landmark points (image u_i <-> world X_i):
   when that found fewer markers than predicted in it. Without a prior, or
   when the boxes gave fewer than ``min_points`` corners, the whole reduced frame is searched, and
   the whole full-size frame too when that found fewer than ``aruco_full_resolution_below`` markers
-  (small, far markers vanish in the reduced image).
+  (small, far markers vanish in the reduced image). With a prior, a marker predicted in view (side
+  >= ``track_min_side_px``) that the detector missed, smeared by the camera's turn, is tracked
+  (agent/marker_tracking.py): its centre, where a template of it smeared by shares
+  ``track_smear_factors`` of the predicted smear correlates best (>= ``track_min_correlation``,
+  within ``aruco_track_margin`` px of its prediction), is one more point of its own group.
 * Colour markers: the centres of the balls of each colour class: found at half resolution, each
   ball's lit cap with its shaded side (the same hue and saturation, darker), the centroid of its
   outline at full resolution (``_balls``, ``_ball_centre``; balls touching the border are dropped,
@@ -276,6 +280,7 @@ from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
 from agent.keep_in import KeepIn
 from agent.marker_corners import refine_corners
+from agent.marker_tracking import marker_texture, rotation_flow, track_marker
 from agent.perception import ColorClass, PerceptionParams, check_image, color_mask
 from agent.pose_smoother import TrackPoint, smooth_track
 from nao_core.config import bounds
@@ -343,6 +348,10 @@ class LocalizationParams:
     aruco_threshold_windows: Tuple[int, int, int] = field(metadata=bounds(3, 99))  # adaptive threshold (min, max, step), px
     aruco_error_correction: float = field(metadata=bounds(0.0, 1.0))  # cv2 errorCorrectionRate: share of the dictionary's correctable bits
     aruco_track_margin: float = field(metadata=bounds(0.0, 1000.0))  # px around predicted markers searched with a prior
+    track_smear_factors: Tuple[float, ...] = field(metadata=bounds(0.0, 2.0))  # undetected predicted markers tracked with these shares of the smear (empty: none)
+    track_min_side_px: float = field(metadata=bounds(4.0, 200.0))  # px: ... when their predicted side is at least this
+    track_min_correlation: float = field(metadata=bounds(0.0, 1.0))  # ... and kept when the template correlates at least this well
+    track_template_blur: float = field(metadata=bounds(0.0, 10.0))  # px, Gaussian blur of the tracking template (the lens, the resampling)
     view_margin_px: float = field(metadata=bounds(0.0, 100.0))  # predicted points this close to the border are not counted
     max_position_std: float = field(metadata=bounds(1e-4, 10.0))  # m: a fix less precise than this is no fix
     max_position_std_with_prior: float = field(metadata=bounds(1e-4, 10.0))  # m: the same with a prior (the fusion weighs it)
@@ -703,6 +712,7 @@ class LandmarkDetector:
         detector_params.errorCorrectionRate = params.aruco_error_correction
         self.detector_params = detector_params
         self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
+        self._textures: Dict[Tuple[str, int], Tuple[np.ndarray, np.ndarray]] = {}  # tracking templates, made when first needed
         self.colors: Dict[str, List[Landmark]] = {}
         if perception is not None:
             check_ball_colours(landmark_map, perception)
@@ -790,6 +800,40 @@ class LandmarkDetector:
         hi = np.clip(np.floor(hi + pad) + 1, 0, size).astype(int)
         keep = facing & near
         return _merge_boxes([[*l, *h, s, 1] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
+
+    def tracked_points(self, gray: np.ndarray, camera: CameraModel, T_WC: np.ndarray, detected: Iterable[object],
+                       rate: np.ndarray, exposure: float) -> _Points:
+        """The centres (one point, one group each) of the map markers predicted in view from T_WC, facing
+        the camera, at least ``track_min_side_px`` wide and not in ``detected``, tracked under the smear of
+        a camera turning at ``rate`` (rad/s, optical frame) for ``exposure`` s (agent/marker_tracking.py)."""
+        p = self.params
+        points = _Points.empty()
+        if not p.track_smear_factors:
+            return points
+        skip = set(detected)
+        for name, markers in self.aruco.items():
+            for marker_id, corners in markers.items():
+                if marker_id in skip:
+                    continue
+                centre = corners.mean(axis=0)
+                uv, in_front = camera.project_world(np.vstack([corners, centre]), T_WC)
+                quad = uv[:4]
+                if not in_front.all() or not np.all(np.isfinite(uv)):
+                    continue
+                x, y = quad[:, 0], quad[:, 1]
+                facing = float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum()) > 0.0  # predicted_boxes' shoelace test
+                side = float(np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).min())
+                if not facing or side < p.track_min_side_px:
+                    continue
+                key = (name, marker_id)
+                if key not in self._textures:
+                    self._textures[key] = marker_texture(self.dictionaries[name], marker_id)
+                smear = exposure * rotation_flow(camera.normalized(uv[4:]), rate, (camera.K[0, 0], camera.K[1, 1]))[0]
+                found = track_marker(gray, *self._textures[key], quad, smear, p.track_smear_factors, p.track_template_blur,
+                                     p.aruco_track_margin)
+                if found is not None and found.correlation >= p.track_min_correlation:
+                    points = points + _Points(centre[None], uv[4:] + found.shift, [marker_id], np.zeros(1, dtype=int))
+        return points
 
     def color_blobs(self, image_bgr: np.ndarray, camera: Optional[CameraModel] = None) -> Dict[str, np.ndarray]:
         """Ball centres (N x 2, full-size pixels) per colour class of the map, off the border (``_balls``);
@@ -997,6 +1041,7 @@ class RobotLocalizer:
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
         # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
+        self._rate = np.zeros(3)  # rad/s, the camera's angular velocity at the frame being measured
         self.track: List[TrackPoint] = []  # every frame seen with a pose, for ``smoothed_track``
         self._segment = 0  # the track's unbroken stretch (``reset`` starts the next)
 
@@ -1154,6 +1199,7 @@ class RobotLocalizer:
         rate = np.asarray(camera_rate, dtype=float)
         if rate.shape != (3,) or not np.all(np.isfinite(rate)):
             raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
+        self._rate = rate
         # a turn about the camera's y (x) axis sweeps the image along u (v)
         self._smear = self.params.exposure * np.array([self.camera.K[0, 0] * rate[1], self.camera.K[1, 1] * rate[0]])
         try:
@@ -1189,9 +1235,12 @@ class RobotLocalizer:
             prior_p = np.array([*prior, 0.0])
         markers = None
         if prior_p is not None:
-            markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, camera_in_world(prior, T_BC)))
+            T_WC = camera_in_world(prior, T_BC)
+            markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC))
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
+        if prior_p is not None:  # the markers the smear hid from the detector
+            markers = markers + self.detector.tracked_points(gray, self.camera, T_WC, markers.ids, self._rate, self.params.exposure)
         markers = _Points(markers.X, model.camera.undistort(markers.u), markers.ids, markers.group)
         return self._solve(model, markers, lambda: self.detector.color_blobs(image, self.camera), prior_p, prior_covariance)
 
