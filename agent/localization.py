@@ -704,6 +704,7 @@ class LandmarkDetector:
         for lm in landmark_map.of_kind("aruco"):
             self.aruco.setdefault(str(lm.dictionary), {})[int(lm.id)] = lm.aruco_corners()
         self.aruco_corners = np.array([c for markers in self.aruco.values() for c in markers.values()]).reshape(-1, 3)
+        self._marker_keys = [(name, marker_id) for name, markers in self.aruco.items() for marker_id in markers]  # ... their order
         self.aruco_normals = np.array([lm.normal for lm in landmark_map.of_kind("aruco")]).reshape(-1, 3)
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = _CORNER_REFINEMENT[params.aruco_corner_refinement]
@@ -783,23 +784,28 @@ class LandmarkDetector:
         half its projected side plus ``aruco_track_margin``; overlapping boxes are merged."""
         if len(self.aruco_corners) == 0:
             return []
-        uv, in_front = camera.project_world(self.aruco_corners, T_WC)
-        ok = in_front.reshape(-1, 4).all(axis=1)
-        quads = uv.reshape(-1, 4, 2)[ok]
-        x, y = quads[..., 0], quads[..., 1]
-        # Shoelace area (image y down): positive for a marker seen from the front in cv2.aruco's
-        # corner order; a marker seen from behind is mirrored, one edge-on has none.
-        facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
+        quads, facing, side = self._predicted_quads(camera, T_WC)
+        quads, side = quads[facing], side[facing]
         lo, hi = quads.min(axis=1), quads.max(axis=1)
         margin = self.params.aruco_track_margin
         size = np.array([camera.width, camera.height])
         near = np.all(hi >= -margin, axis=1) & np.all(lo <= size - 1 + margin, axis=1)  # in the image, or nearly
-        side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
         pad = (0.5 * (hi - lo).max(axis=1) + margin)[:, None]
         lo = np.clip(np.floor(lo - pad), 0, size).astype(int)
         hi = np.clip(np.floor(hi + pad) + 1, 0, size).astype(int)
-        keep = facing & near
-        return _merge_boxes([[*l, *h, s, 1] for l, h, s in zip(lo[keep], hi[keep], side[keep])])
+        return _merge_boxes([[*l, *h, s, 1] for l, h, s in zip(lo[near], hi[near], side[near])])
+
+    def _predicted_quads(self, camera: CameraModel, T_WC: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every map marker's projected corners from T_WC (M x 4 x 2, ``aruco_corners`` order), whether it
+        is in front of the camera and facing it, and its shortest projected side (px)."""
+        uv, in_front = camera.project_world(self.aruco_corners, T_WC)
+        quads = uv.reshape(-1, 4, 2)
+        x, y = quads[..., 0], quads[..., 1]
+        # Shoelace area (image y down): positive for a marker seen from the front in cv2.aruco's
+        # corner order; a marker seen from behind is mirrored, one edge-on has none.
+        facing = in_front.reshape(-1, 4).all(axis=1) & ((x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0)
+        side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
+        return quads, facing, side
 
     def tracked_points(self, gray: np.ndarray, camera: CameraModel, T_WC: np.ndarray, detected: Iterable[object],
                        rate: np.ndarray, exposure: float) -> _Points:
@@ -808,31 +814,25 @@ class LandmarkDetector:
         a camera turning at ``rate`` (rad/s, optical frame) for ``exposure`` s (agent/marker_tracking.py)."""
         p = self.params
         points = _Points.empty()
-        if not p.track_smear_factors:
+        if not p.track_smear_factors or len(self.aruco_corners) == 0:
             return points
+        quads, facing, side = self._predicted_quads(camera, T_WC)
         skip = set(detected)
-        for name, markers in self.aruco.items():
-            for marker_id, corners in markers.items():
-                if marker_id in skip:
-                    continue
-                centre = corners.mean(axis=0)
-                uv, in_front = camera.project_world(np.vstack([corners, centre]), T_WC)
-                quad = uv[:4]
-                if not in_front.all() or not np.all(np.isfinite(uv)):
-                    continue
-                x, y = quad[:, 0], quad[:, 1]
-                facing = float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum()) > 0.0  # predicted_boxes' shoelace test
-                side = float(np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1).min())
-                if not facing or side < p.track_min_side_px:
-                    continue
-                key = (name, marker_id)
-                if key not in self._textures:
-                    self._textures[key] = marker_texture(self.dictionaries[name], marker_id)
-                smear = exposure * rotation_flow(camera.normalized(uv[4:]), rate, (camera.K[0, 0], camera.K[1, 1]))[0]
-                found = track_marker(gray, *self._textures[key], quad, smear, p.track_smear_factors, p.track_template_blur,
-                                     p.aruco_track_margin)
-                if found is not None and found.correlation >= p.track_min_correlation:
-                    points = points + _Points(centre[None], uv[4:] + found.shift, [marker_id], np.zeros(1, dtype=int))
+        for i in np.flatnonzero(facing & (side >= p.track_min_side_px) & np.all(np.isfinite(quads), axis=(1, 2))):
+            name, marker_id = self._marker_keys[i]
+            if marker_id in skip:
+                continue
+            centre = self.aruco_corners[4 * i:4 * i + 4].mean(axis=0)
+            uv, _ = camera.project_world(centre[None], T_WC)
+            if not np.all(np.isfinite(uv)):
+                continue
+            if (name, marker_id) not in self._textures:
+                self._textures[name, marker_id] = marker_texture(self.dictionaries[name], marker_id)
+            smear = exposure * rotation_flow(camera.normalized(uv), rate, (camera.K[0, 0], camera.K[1, 1]))[0]
+            found = track_marker(gray, *self._textures[name, marker_id], quads[i], smear, p.track_smear_factors,
+                                 p.track_template_blur, p.aruco_track_margin)
+            if found is not None and found.correlation >= p.track_min_correlation:
+                points = points + _Points(centre[None], uv + found.shift, [marker_id], np.zeros(1, dtype=int))
         return points
 
     def color_blobs(self, image_bgr: np.ndarray, camera: Optional[CameraModel] = None) -> Dict[str, np.ndarray]:

@@ -91,12 +91,11 @@ def track_marker(gray: np.ndarray, texture: np.ndarray, texture_corners: np.ndar
     """The marker whose corners the prior predicts at ``quad`` (4 x 2 px), aligned in ``gray`` by ECC
     (module docstring); None when its window leaves the image or no factor converges."""
     quad = np.asarray(quad, dtype=np.float32)
-    span = quad.max(axis=0) - quad.min(axis=0)
-    pad = span * (texture_corners[0, 0] + 0.5) / (texture.shape[0] - 2 * texture_corners[0, 0] - 1) + np.abs(smear).max() / 2 + max_shift
+    quiet_zone = (texture_corners[0, 0] + 0.5) / (texture_corners[1, 0] - texture_corners[0, 0])  # of the marker's side
+    pad = (quad.max(axis=0) - quad.min(axis=0)) * quiet_zone + np.abs(smear).max() / 2 + max_shift
     lo = np.floor(quad.min(axis=0) - pad).astype(int)
     hi = np.ceil(quad.max(axis=0) + pad).astype(int)
-    h, w = gray.shape[:2]
-    if lo.min() < 0 or hi[0] > w or hi[1] > h:
+    if lo.min() < 0 or hi[0] > gray.shape[1] or hi[1] > gray.shape[0]:
         return None
     size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
     H = cv2.getPerspectiveTransform(texture_corners, quad - lo.astype(np.float32))
@@ -106,20 +105,22 @@ def track_marker(gray: np.ndarray, texture: np.ndarray, texture_corners: np.ndar
     valid = np.full(window.shape, 255, np.uint8)
     best: Optional[TrackedMarker] = None
     x, y, w, h = cv2.boundingRect(inside)
+    if min(w, h) < 4:  # a degenerate predicted quad
+        return None
     for factor in smear_factors:
         kernel = smear_kernel(factor * np.asarray(smear, dtype=float))
         template = sharp if kernel is None else cv2.filter2D(sharp, -1, kernel, borderType=cv2.BORDER_REPLICATE)
         if sigma > 0.0:
             template = cv2.GaussianBlur(template, (0, 0), sigma)
-        # coarse: the best whole-pixel shift by normalized cross-correlation over the window
-        scores = np.nan_to_num(cv2.matchTemplate(window, template[y:y + h, x:x + w], cv2.TM_CCOEFF_NORMED,
-                                                 mask=inside[y:y + h, x:x + w]), nan=-1.0, posinf=-1.0, neginf=-1.0)
-        row, col = np.unravel_index(int(np.argmax(scores)), scores.shape)
-        start = np.array([[1.0, 0.0, col - x], [0.0, 1.0, row - y]], np.float32)
         try:
+            # coarse: the best whole-pixel shift by normalized cross-correlation over the window
+            scores = np.nan_to_num(cv2.matchTemplate(window, template[y:y + h, x:x + w], cv2.TM_CCOEFF_NORMED,
+                                                     mask=inside[y:y + h, x:x + w]), nan=-1.0, posinf=-1.0, neginf=-1.0)
+            row, col = np.unravel_index(int(np.argmax(scores)), scores.shape)
+            start = np.array([[1.0, 0.0, col - x], [0.0, 1.0, row - y]], np.float32)
             correlation, warp = cv2.findTransformECCWithMask(template, window, inside, valid, start,
                                                              cv2.MOTION_TRANSLATION, _ECC_CRITERIA, 3)
-        except cv2.error:  # did not converge, or a flat window
+        except cv2.error:  # ECC did not converge, or a flat window
             continue
         shift = warp[:, 2].astype(float)
         if np.all(np.isfinite(shift)) and np.hypot(*shift) <= max_shift and (best is None or correlation > best.correlation):

@@ -13,7 +13,7 @@ import pytest
 
 from agent.camera import CameraModel
 from agent.localization import LocalizationParams, RobotLocalizer, camera_in_world, landmarks_in_image
-from agent.marker_tracking import rotation_flow, smear_kernel
+from agent.marker_tracking import marker_texture, rotation_flow, smear_kernel, track_marker
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model
@@ -148,3 +148,20 @@ def test_smeared_frames_give_fixes_with_tracking_and_none_confirms_a_wrong_prior
     assert showing >= 6 and len(errors) >= 0.9 * showing and untracked <= 0.25 * showing
     assert np.median(errors) <= 0.01 and max(errors) <= 0.03
     assert all(e <= 0.03 for e in wrong_prior)
+
+
+@pytest.mark.parametrize("quad", [
+    [[300, 200]] * 4,                                    # a point
+    [[300, 200], [340, 200], [380, 200], [420, 200]],    # a line
+    [[-30, 200], [10, 200], [10, 240], [-30, 240]],      # across the border
+    [[300, 200], [260, 200], [260, 240], [300, 240]],    # seen from behind (mirrored)
+])
+def test_hostile_predictions_and_flat_images_track_nothing(quad):
+    """A predicted quad that is a point, a line, across the image border or mirrored, in a flat or a
+    noisy image: no match (None, or a correlation under the configured 0.8), and nothing raises."""
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    texture, corners = marker_texture(dictionary, 3)
+    rng = np.random.default_rng(0)
+    for gray in (np.full((480, 640), 128, np.uint8), rng.integers(0, 256, (480, 640), dtype=np.uint8)):
+        found = track_marker(gray, texture, corners, np.array(quad, float), np.array([0.0, 6.0]), (0.6, 0.3, 0.0), 1.0, 16.0)
+        assert found is None or found.correlation < 0.8
