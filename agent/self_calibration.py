@@ -204,7 +204,7 @@ class SelfCalibration:
         applied. Its pixels have the lens distortion removed (by whichever K the localizer had: the
         distortion hardly depends on a K this close)."""
         p = self.params
-        if (not p.enabled or fix.conditioned or fix.inliers is None or len(fix.inliers[0]) < p.min_points
+        if (not p.enabled or fix.conditioned or fix.tracked or fix.inliers is None or len(fix.inliers[0]) < p.min_points
                 or len(fix.landmark_ids) < p.min_landmarks or fix.roll_sigma > p.max_roll_sigma
                 or not self.head_settled or stamp - self._last_stamp < p.min_interval):
             return False

@@ -545,6 +545,21 @@ def test_jumps_that_scatter_never_overturn_the_prior(params, perception, robot, 
         assert localizer.pose == pytest.approx((0.5, 0.4, 0.0)) and "jump" in localizer.no_fix_reason
 
 
+def test_fixes_from_tracked_markers_never_relocalize(params, perception, robot, room):
+    """Fixes that agree with each other and not with the prior overturn it after ``max_rejected_jumps``;
+    the same fixes made with markers tracked from the prior (agent/marker_tracking.py: found where it put
+    them) never do, however many come."""
+    for tracked, relocalized in ((0, True), (1, False)):
+        localizer = RobotLocalizer(params, room, camera_of(robot, "vga"), perception)
+        localizer._correction, localizer.covariance, localizer._odom = (0.5, 0.4, 0.0), np.diag([0.01, 0.01, 0.01]) ** 2, (0.0, 0.0, 0.0)
+        localizer.measure = lambda *args: PoseFix((0.2, 0.4, 0.0), np.diag([0.005, 0.005, 0.002]) ** 2, 0.3, (1, 2), 6, np.eye(4),
+                                                  tracked=tracked)
+        image = np.zeros((localizer.camera.height, localizer.camera.width, 3), np.uint8)
+        fixes = [localizer.on_frame(image, np.eye(4), (0.0, 0.0, 0.0), float(k)) for k in range(2 * params.max_rejected_jumps)]
+        assert any(f is not None for f in fixes) is relocalized
+        assert localizer.pose[0] == pytest.approx(0.2 if relocalized else 0.5, abs=0.01)
+
+
 def test_a_fit_that_needs_a_roll_beyond_its_prior_widens_its_covariance(params, perception, robot, room):
     """T_BC missing a torso roll of 5 sigmas of its prior (the walking torso's and the camera tilt's
     unlearnt, beyond max_roll_sigmas): the fit's covariance is computed with the roll prior widened

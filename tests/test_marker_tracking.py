@@ -124,7 +124,7 @@ def test_smeared_markers_the_detector_misses_are_tracked_to_their_centres(smeare
 
 
 def test_smeared_frames_give_fixes_with_tracking_and_none_confirms_a_wrong_prior(smeared_views, localization):
-    """From a prior 1 cm off, >= 90 % of the smeared frames showing three markers or more give a fix,
+    """From a prior 1 cm off, >= 80 % of the smeared frames showing three markers or more give a fix,
     within 1 cm (median) and 3 cm (each), where the detector alone gives almost none. From a prior
     20 cm off, tracking finds nothing it could pull a fix towards the prior with: every fix is within
     3 cm of the truth."""
@@ -145,7 +145,7 @@ def test_smeared_frames_give_fixes_with_tracking_and_none_confirms_a_wrong_prior
         far = tracking.measure(smeared, T_BC, tuple(off), camera_rate=rate)
         if far is not None:
             wrong_prior.append(math.dist(far.pose[:2], pose[:2]))
-    assert showing >= 6 and len(errors) >= 0.9 * showing and untracked <= 0.25 * showing
+    assert showing >= 6 and len(errors) >= 0.8 * showing and untracked <= 0.25 * showing
     assert np.median(errors) <= 0.01 and max(errors) <= 0.03
     assert all(e <= 0.03 for e in wrong_prior)
 
