@@ -16,9 +16,11 @@ the prior puts it: the marker (``cv2.aruco.generateImageMarker``) with one modul
 zone, warped by the homography of its predicted corners, smeared by the kernel of c s (a line of
 length c |s|, bilinear taps) and blurred by a Gaussian of ``sigma`` px. The image is aligned to it
 by ECC (``cv2.findTransformECCWithMask``, Evangelidis and Psarakis 2008) over a translation t,
-started from the best whole-pixel shift of a normalized cross-correlation (``cv2.matchTemplate``)
-over the window (ECC alone converges only within about a module of the pattern), which maximises the correlation of the zero-mean, unit-norm template and image window inside the
-template's mask (the marker and its quiet zone: the wall around it is not the template's). The marker's centre is then seen at pi(centre) + t.
+which maximises the correlation of the zero-mean, unit-norm template and image window inside the
+template's mask (the marker and its quiet zone: the wall around it is not the template's), started
+from the best whole-pixel shift of a normalized cross-correlation (``cv2.matchTemplate``) over the
+window (ECC alone converges only within about a module of the pattern: a prior 10 mrad off lost
+most markers). The marker's centre is then seen at pi(centre) + t.
 
 Only the translation is measured: an affine or homography fit on smeared images wandered (corner
 errors of 1-2 px median with tails of hundreds of px on the same frames), and the four corners of
@@ -38,7 +40,7 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
-_TEXELS = 96  # marker texture side, px: above every tracked marker's image side
+_TEXELS = 96  # marker texture side, px (a tracked marker is smaller in the image: the detector finds large ones)
 _ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 
 
@@ -46,7 +48,6 @@ _ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
 class TrackedMarker:
     shift: np.ndarray  # px (2,), the image minus the prediction
     correlation: float  # ECC's correlation coefficient, in [-1, 1]
-    smear_factor: float  # the c of the kept template
 
 
 def rotation_flow(normalized: np.ndarray, rate: Sequence[float], focal: Sequence[float]) -> np.ndarray:
@@ -124,5 +125,5 @@ def track_marker(gray: np.ndarray, texture: np.ndarray, texture_corners: np.ndar
             continue
         shift = warp[:, 2].astype(float)
         if np.all(np.isfinite(shift)) and np.hypot(*shift) <= max_shift and (best is None or correlation > best.correlation):
-            best = TrackedMarker(shift, float(correlation), float(factor))
+            best = TrackedMarker(shift, float(correlation))
     return best

@@ -38,9 +38,10 @@ failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agen
                    or its quality (pose precision x silhouette) doubles every one's near it (the
                    pose's heading variance includes the filter's (w sigma_s)^2: a turning camera's
                    stamp error misplaces its silhouette as a heading error does); a
-                   keyframe whose frame gave a landmark fix gets its camera pose refined in 6-DOF
-                   against that fix's points (agent/keyframe_pose.py); at the end the planar pose
-                   of every keyframe without one is smoothed over all fixes (``smoothed_keyframes``,
+                   keyframe whose frame gave a landmark fix of detected markers (none tracked:
+                   agent/marker_tracking.py) gets its camera pose refined in 6-DOF against that
+                   fix's points (agent/keyframe_pose.py); at the end the planar pose of every
+                   keyframe without one is smoothed over all fixes (``smoothed_keyframes``,
                    agent/pose_smoother.py)
 
 Re-anchoring: every filter measurement is also kept with its camera in the odometry frame O (the
@@ -298,7 +299,7 @@ class Pilot:
         self._covered: Tuple[int, float] = (0, 0.0)  # the most bins the termination saw seen, and when
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
-        self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # frame seq -> (capture stamp, T_WC taken with, fix on it)
+        self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # seq -> (capture stamp, T_WC taken with, a fix of detected markers on it)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -594,13 +595,14 @@ class Pilot:
                                c.keyframe_pose_std) * silhouette_quality(mask, image, c.keyframe_cut)
         if not self._keyframes.offer(azimuth, quality):
             return
-        if fix is not None and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
+        detected = fix is not None and not fix.tracked  # a tracked marker's centre is too few points for 6 DOF (matrix world 3: 2 of them)
+        if detected and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
             loc = self.config.localization
             refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, max(loc.pixel_sigma, fix.rms_px),
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
         step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera, seq)
-        self._keyframe_frames[seq] = (stamp, T_WC, fix is not None)
+        self._keyframe_frames[seq] = (stamp, T_WC, detected)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
 
     def smoothed_keyframes(self) -> Dict[int, np.ndarray]:

@@ -15,9 +15,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from agent.camera import CameraModel
 from agent.ekf import ObjectEKF
+from agent.localization import PoseFix
 from agent.mission import Outcome, Phase
-from nao_core.geometry import compose, relative, wrap_angle
+from nao_core.geometry import compose, relative, rot_y, wrap_angle
 from nao_core.protocol import Frame, FrameMeta, Info, WalkCommand, HeadCommand, encode
 from nao_core.robot_model import head_at, load_robot_model
 from nao_sim.world import SimWorld
@@ -670,6 +672,38 @@ def test_a_turning_cameras_keyframe_weighs_its_stamp_error():
     turning = pose_quality(np.diag([0.002**2, 0.002**2, 0.002**2 + 0.06**2]), 0.6, sigma_0)
     assert qualities == pytest.approx([still, turning])
     assert turning < 0.1 * still
+
+
+def test_a_keyframe_keeps_a_refined_pose_only_from_detected_markers():
+    """A keyframe whose frame gave a fix of detected marker corners has its camera refined in 6-DOF
+    against them and keeps that pose in the final carve; one whose fix used markers tracked from the
+    prior (agent/marker_tracking.py: a centre each, too few points for 6 DOF) is taken as it was and
+    smoothed with the fix-less ones (``smoothed_keyframes``)."""
+    world = SimWorld("can", MODEL, "qvga", seed=1)
+    world.teleport(world.start_pose, head=(0.0, CONFIG.mission.init_pitch))
+    world.render()
+    T_true = np.asarray(world.truth()["camera"]["T_WC"])
+    corners = np.array([[2.0, y, z] for y in (-0.3, 0.3) for z in (0.2, 0.4)] + [[2.5, 0.6, 0.3], [1.8, -0.5, 0.25]])
+    camera = CameraModel.from_intrinsics(INFO.intrinsics)
+    pixels, _ = camera.project_world(corners, T_true)
+    T_off = T_true.copy()
+    T_off[:3, :3] = T_off[:3, :3] @ rot_y(0.01)[:3, :3]  # 10 mrad of heading off: the refinement would take it back
+    kept = {}
+    for tracked in (0, 2):
+        pilot = Pilot(CONFIG, INFO)
+        pilot.ekf = ObjectEKF.from_estimate(CONFIG.ekf, np.array([0.6, 0.0, 0.05]), np.diag([1e-6, 1e-6, 1e-6]))
+        pilot.localizer.covariance = np.diag([0.002**2, 0.002**2, 0.002**2])
+        fix = PoseFix((0.0, 0.0, 0.0), np.eye(3) * 1e-6, 0.1, (1, 2), len(corners), T_off, inliers=(corners, pixels), tracked=tracked)
+        step = SimpleNamespace(outputs=[], keyframe=None)
+        mask = np.zeros((H, W), bool)
+        mask[60:180, 140:180] = True
+        pilot._maybe_keyframe(step, 1.0, 7, 1.0, (0.0, 0.0, 0.0), mask, T_off, None, fix=fix)
+        kept[tracked] = pilot._keyframe_frames[7]
+    refined, taken = kept[0], kept[2]
+    assert refined[2] and not taken[2]
+    assert np.allclose(taken[1], T_off)
+    heading_error = lambda T: np.linalg.norm(cv2.Rodrigues(T[:3, :3].T @ T_true[:3, :3])[0])  # noqa: E731
+    assert heading_error(refined[1]) < 0.3 * heading_error(T_off)
 
 
 def test_localize_without_a_fix_sweeps_the_body_keeping_the_object_in_the_head_s_range():
