@@ -824,21 +824,23 @@ class LandmarkDetector:
             return points
         quads, facing, side = self._predicted_quads(camera, T_WC)
         skip = set(detected)
-        for i in np.flatnonzero(facing & (side >= p.track_min_side_px) & np.all(np.isfinite(quads), axis=(1, 2))):
+        candidates = [i for i in np.flatnonzero(facing & (side >= p.track_min_side_px) & np.all(np.isfinite(quads), axis=(1, 2)))
+                      if self._marker_keys[i][1] not in skip]
+        if not candidates:
+            return points
+        centres = self.aruco_corners.reshape(-1, 4, 3)[candidates].mean(axis=1)
+        uv, _ = camera.project_world(centres, T_WC)
+        seen = np.all(np.isfinite(uv), axis=1)
+        smears = np.zeros_like(uv)
+        smears[seen] = exposure * rotation_flow(camera.normalized(uv[seen]), rate, (camera.K[0, 0], camera.K[1, 1]))
+        for i, centre, centre_uv, smear in zip(np.array(candidates)[seen], centres[seen], uv[seen], smears[seen]):
             name, marker_id = self._marker_keys[i]
-            if marker_id in skip:
-                continue
-            centre = self.aruco_corners[4 * i:4 * i + 4].mean(axis=0)
-            uv, _ = camera.project_world(centre[None], T_WC)
-            if not np.all(np.isfinite(uv)):
-                continue
             if (name, marker_id) not in self._textures:
                 self._textures[name, marker_id] = marker_texture(self.dictionaries[name], marker_id)
-            smear = exposure * rotation_flow(camera.normalized(uv), rate, (camera.K[0, 0], camera.K[1, 1]))[0]
             found = track_marker(gray, *self._textures[name, marker_id], quads[i], smear, p.track_smear_factors,
                                  p.track_template_blur, p.aruco_track_margin)
             if found is not None and found.correlation >= p.track_min_correlation:
-                points = points + _Points(centre[None], uv + found.shift, [marker_id], np.zeros(1, dtype=int))
+                points = points + _Points(centre[None], (centre_uv + found.shift)[None], [marker_id], np.zeros(1, dtype=int))
         return points
 
     def color_blobs(self, image_bgr: np.ndarray, camera: Optional[CameraModel] = None) -> Dict[str, np.ndarray]:
@@ -1047,8 +1049,6 @@ class RobotLocalizer:
         self.camera_rate: Optional[np.ndarray] = None  # rad/s, the camera's angular velocity at the last frame, its
         # optical axes (None: unknown, the first frame or one after a gap)
         self._smear = np.zeros(2)  # px, the frame's motion smear over ``exposure`` (module docstring, Smear)
-        self._rate = np.zeros(3)  # rad/s, the camera's angular velocity at the frame being measured
-        self._tracked: Tuple[object, ...] = ()  # ids of the markers tracked in it (agent/marker_tracking.py)
         self.track: List[TrackPoint] = []  # every frame seen with a pose, for ``smoothed_track``
         self._segment = 0  # the track's unbroken stretch (``reset`` starts the next)
 
@@ -1206,11 +1206,10 @@ class RobotLocalizer:
         rate = np.asarray(camera_rate, dtype=float)
         if rate.shape != (3,) or not np.all(np.isfinite(rate)):
             raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
-        self._rate = rate
         # a turn about the camera's y (x) axis sweeps the image along u (v)
         self._smear = self.params.exposure * np.array([self.camera.K[0, 0] * rate[1], self.camera.K[1, 1] * rate[0]])
         try:
-            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance))
+            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance), rate)
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
@@ -1232,8 +1231,8 @@ class RobotLocalizer:
         self._tilt_prior = tilt_information(self.params.pixel_sigma, self._tilt_covariance)
         return T_BC
 
-    def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose], prior_covariance: Optional[np.ndarray]
-                 ) -> PoseFix:
+    def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose], prior_covariance: Optional[np.ndarray],
+                 rate: np.ndarray) -> PoseFix:
         T_BC = self._set_tilt_prior(T_BC, self._roll_sigma)
         model = PlanarModel(self.camera, T_BC)
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
@@ -1246,12 +1245,13 @@ class RobotLocalizer:
             markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC))
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
-        self._tracked = ()
+        tracked = _Points.empty()
         if prior_p is not None:  # the markers the smear hid from the detector
-            tracked = self.detector.tracked_points(gray, self.camera, T_WC, markers.ids, self._rate, self.params.exposure)
-            markers, self._tracked = markers + tracked, tuple(tracked.ids)
+            tracked = self.detector.tracked_points(gray, self.camera, T_WC, markers.ids, rate, self.params.exposure)
+            markers = markers + tracked
         markers = _Points(markers.X, model.camera.undistort(markers.u), markers.ids, markers.group)
-        return self._solve(model, markers, lambda: self.detector.color_blobs(image, self.camera), prior_p, prior_covariance)
+        return self._solve(model, markers, lambda: self.detector.color_blobs(image, self.camera), prior_p, prior_covariance,
+                           tracked.landmark_ids)
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
             groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None,
@@ -1262,7 +1262,6 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         self._smear = np.zeros(2)
-        self._tracked = ()
         try:
             model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
@@ -1279,9 +1278,11 @@ class RobotLocalizer:
             return None
 
     def _solve(self, model: PlanarModel, markers: _Points, colour_blobs: Callable[[], Dict[str, np.ndarray]],
-               prior_p: Optional[np.ndarray], prior_covariance: Optional[np.ndarray] = None) -> PoseFix:
+               prior_p: Optional[np.ndarray], prior_covariance: Optional[np.ndarray] = None,
+               tracked_ids: Tuple[object, ...] = ()) -> PoseFix:
         """Markers fitted jointly, colour blobs added (or searched) when they are few (module docstring);
-        ``prior_covariance`` (of ``prior_p``'s pose, checked) turns a fix too imprecise alone into a conditioned one."""
+        ``prior_covariance`` (of ``prior_p``'s pose, checked) turns a fix too imprecise alone into a conditioned one;
+        ``tracked_ids``: the markers among them tracked from the prior (agent/marker_tracking.py)."""
         self.landmarks_seen = len(np.unique(markers.group))
         reasons = []
         fit = None
@@ -1315,7 +1316,7 @@ class RobotLocalizer:
             raise NoFix(f"the fit needs the camera pitched {math.degrees(p[4]):+.1f} deg off T_BC's (more than "
                         f"{self.params.max_roll_sigmas:g} sigma): the kinematics or the correspondences are wrong")
         # per-axis residual variance: sum ||r_i||^2 = N rms^2 over 2N residuals, 3 degrees of freedom used
-        tracked = sum(i in self._tracked for i in points.landmark_ids)
+        tracked = sum(i in tracked_ids for i in points.landmark_ids)
         floor = self.params.track_pixel_sigma if tracked else self.params.pixel_sigma
         residual_var = max(floor**2, len(points) * rms**2 / max(1, 2 * len(points) - 3))
         information, evidence = _tilt_evidence(H - self._tilt_prior, self._tilt_prior, p, residual_var)

@@ -100,14 +100,14 @@ def track_marker(gray: np.ndarray, texture: np.ndarray, texture_corners: np.ndar
         return None
     size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
     H = cv2.getPerspectiveTransform(texture_corners, quad - lo.astype(np.float32))
-    sharp = cv2.warpPerspective(texture, H, size, flags=cv2.INTER_AREA).astype(np.float32)
     inside = cv2.warpPerspective(np.full(texture.shape, 255, np.uint8), H, size, flags=cv2.INTER_NEAREST)
-    window = gray[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
-    valid = np.full(window.shape, 255, np.uint8)
-    best: Optional[TrackedMarker] = None
     x, y, w, h = cv2.boundingRect(inside)
     if min(w, h) < 4:  # a degenerate predicted quad
         return None
+    sharp = cv2.warpPerspective(texture, H, size, flags=cv2.INTER_AREA).astype(np.float32)
+    window = gray[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
+    valid = np.full(window.shape, 255, np.uint8)  # the whole window is image
+    best: Optional[TrackedMarker] = None
     for factor in smear_factors:
         kernel = smear_kernel(factor * np.asarray(smear, dtype=float))
         template = sharp if kernel is None else cv2.filter2D(sharp, -1, kernel, borderType=cv2.BORDER_REPLICATE)
