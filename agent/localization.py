@@ -228,7 +228,8 @@ P_t is what the object filter weighs the camera pose by (docs/estimation.md, "Po
 P, what more fixes can reduce, drives the landmark lookout.
 
 Smear. A camera turning at omega (rad/s, its optical frame) during an exposure T smears the image
-by s = T (f_x omega_y, f_y omega_x) px (a turn about the optical axis is neglected). The frame's
+by s = T (-f_x omega_y, f_y omega_x) px, the rotation flow at the principal point
+(agent/marker_tracking.py ``rotation_flow``; a turn about the optical axis is neglected). The frame's
 stamp is set to the exposure's middle (docs/frames.md "Exposure"), so the smear's mean is right, but
 a marker's outline is not: its width along s is read off by a share of |s|, and one small marker's
 viewing angle, which its width carries, with it (rendered frames of a drawn room, the body turning at
@@ -1203,16 +1204,21 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self.landmarks_seen = 0
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
-        rate = np.asarray(camera_rate, dtype=float)
-        if rate.shape != (3,) or not np.all(np.isfinite(rate)):
-            raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
-        # a turn about the camera's y (x) axis sweeps the image along u (v)
-        self._smear = self.params.exposure * np.array([self.camera.K[0, 0] * rate[1], self.camera.K[1, 1] * rate[0]])
+        self._smear = self._smear_of(camera_rate)
         try:
-            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance), rate)
+            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance),
+                                 np.asarray(camera_rate, dtype=float))
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
+
+    def _smear_of(self, camera_rate: Sequence[float]) -> np.ndarray:
+        """px, the smear at the principal point over ``exposure`` (module docstring, Smear); ValueError
+        when ``camera_rate`` is not three finite numbers."""
+        rate = np.asarray(camera_rate, dtype=float)
+        if rate.shape != (3,) or not np.all(np.isfinite(rate)):
+            raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
+        return self.params.exposure * rotation_flow(np.zeros((1, 2)), rate, (self.camera.K[0, 0], self.camera.K[1, 1]))[0]
 
     def _frame_tilt_covariance(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
         """Prior covariance of (delta, epsilon) at the corrected T_BC: the torso's and the tilt estimate's."""
@@ -1255,13 +1261,13 @@ class RobotLocalizer:
 
     def fit(self, world_points: np.ndarray, pixels: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose] = None,
             groups: Optional[np.ndarray] = None, roll_sigma: Optional[float] = None,
-            prior_covariance: Optional[np.ndarray] = None) -> Optional[PoseFix]:
+            prior_covariance: Optional[np.ndarray] = None, camera_rate: Sequence[float] = (0.0, 0.0, 0.0)) -> Optional[PoseFix]:
         """The fix from given correspondences (N x 3 world, N x 2 pixels; ``groups``: marker of each
-        point, default four points per marker; ``roll_sigma`` and ``prior_covariance`` as for ``measure``),
-        or None (``no_fix_reason`` says why), the camera still. For tests and tools."""
+        point, default four points per marker; ``roll_sigma``, ``prior_covariance`` and ``camera_rate`` as
+        for ``measure``), or None (``no_fix_reason`` says why). For tests and tools."""
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
-        self._smear = np.zeros(2)
+        self._smear = self._smear_of(camera_rate)
         try:
             model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
