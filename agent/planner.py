@@ -6,7 +6,7 @@ holds one lateral speed v_y, |v_y| <= vy_max, walked over the whole horizon (NAO
 the filter is rolled forward D steps with noise-free observations at the mean, so x stays and only
 the covariance shrinks, :func:`agent.ekf.rollout_covariance`)::
 
-    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + mu |w|^2 + c_clear + c_wall
+    c(w) = l_l c_l + l_v c_v + l_r c_r + l_d c_d + l_h c_h + l_m c_m + mu |w|^2 + c_clear + c_wall
 
 evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{t+D}):
 
@@ -32,6 +32,11 @@ evaluated at t + D (robot p, heading theta, object estimate o, r, covariance P_{
                        (base below the reachable view, top above it, extent taller than the view). It
                        pushes the orbit out when the head is turned far (small p_hi) or, walking
                        omnidirectionally, turns the body toward the object (small yaw, larger p_hi).
+    c_m  landmarks     (not in the paper): mean over the horizon of max(0, N - n_k)^2, n_k the soft count
+                       of the map's landmarks the head can turn the camera to from the robot's pose k
+                       (:mod:`agent.landmark_reach`: within the reach, large enough to detect), N
+                       ``landmarks_needed``: the robot keeps where the lookout finds landmarks (a wall
+                       of markers is not left straight behind it). Zero in a room marked all round.
     c_clear            hard clearance: W_clear sum_k max(0, r + clearance + m_k - |o - p_k|)^2 over the
                        horizon, W_clear = 1e6, so any sequence keeping the clearance beats any that
                        breaks it, and when none can, the least violating one wins. m_k is the
@@ -72,6 +77,7 @@ from agent.camera import CameraModel
 from agent.coverage import Coverage, CoverageParams, seen_count
 from agent.ekf import EKFParams, position_std, rollout_covariance
 from agent.keep_in import KeepIn, reachable_bins
+from agent.landmark_reach import LandmarkReach
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from nao_core.config import CONFIG_DIR, bounds, load
 from nao_core.geometry import wrap_angle
@@ -84,13 +90,14 @@ FD_STEP = 1e-6  # rad/s, finite-difference step of the polish's gradient
 
 @dataclass(frozen=True)
 class Weights:
-    """lambda_l, lambda_v, lambda_r, lambda_d, lambda_h and mu of the cost."""
+    """lambda_l, lambda_v, lambda_r, lambda_d, lambda_h, lambda_m and mu of the cost."""
 
     uncertainty: float = field(metadata=bounds(0.0, 1e9))
     view: float = field(metadata=bounds(0.0, 1e9))
     coverage: float = field(metadata=bounds(0.0, 1e9))
     distance: float = field(metadata=bounds(0.0, 1e9))
     vertical: float = field(metadata=bounds(0.0, 1e9))  # lambda_h
+    landmarks: float = field(metadata=bounds(0.0, 1e9))  # lambda_m
     effort: float = field(metadata=bounds(0.0, 1e9))
 
 
@@ -150,6 +157,8 @@ class PlannerParams:
     weights: Weights
     vertical_margin: float = field(metadata=bounds(0.0, 0.5))  # m of c_h: rad kept between the object and the image border
     object_height: float = field(metadata=bounds(0.01, 5.0))  # H assumed until the silhouettes bound the top, m
+    landmarks_needed: float = field(metadata=bounds(0.0, 100.0))  # N of c_m: landmarks the head should be able to turn to
+    landmark_min_px: float = field(metadata=bounds(1.0, 1000.0))  # q_min of c_m: the least landmark width detected, px
     coverage: CoverageParams
     optimizer: Literal["cem", "nelder_mead"]
     cem: CEMParams
@@ -225,6 +234,11 @@ def vertical_view_cost(
     return np.mean(np.square(excess), axis=-1)
 
 
+def landmark_cost(counts: np.ndarray, needed: float) -> np.ndarray:
+    """c_m: mean over the horizon (last axis) of max(0, N - n_k)^2 of the landmarks' soft counts."""
+    return np.mean(np.square(np.maximum(needed - counts, 0.0)), axis=-1)
+
+
 def effort_cost(omegas: np.ndarray) -> np.ndarray:
     """|w|^2 = sum_k omega_k^2 over the horizon (last axis)."""
     return np.sum(np.square(omegas), axis=-1)
@@ -263,7 +277,7 @@ class Plan:
     omegas: np.ndarray  # (D,) rad/s
     command: Tuple[float, float, float]  # (v, vy, omega) within the walk limits
     cost: float
-    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, vertical, clearance, wall
+    terms: Dict[str, float]  # weighted: uncertainty, view, coverage, distance, effort, vertical, landmarks, clearance, wall
     evaluations: int  # candidate sequences whose cost was computed
     lateral_speed: float = 0.0  # v_y over the horizon, m/s (0 unless omnidirectional)
     clearance_margin: float = 0.0  # the uncertainty margin m at the robot's next position, m
@@ -338,10 +352,11 @@ class Planner:
 
     def cost_function(
         self, robot_pose: np.ndarray, x: np.ndarray, P: np.ndarray, seen: np.ndarray, height: Optional[float] = None,
-        keep_in: Optional[KeepIn] = None,
+        keep_in: Optional[KeepIn] = None, landmarks: Optional[LandmarkReach] = None,
     ) -> Callable[[np.ndarray], Tuple[np.ndarray, Dict[str, np.ndarray]]]:
         """The batched cost of decisions (K, D[+1]) -> (total (K,), weighted terms) for this replan's belief;
-        ``keep_in``: the walls to keep off (robot_pose in the landmark map's frame)."""
+        ``keep_in``: the walls to keep off, ``landmarks``: the map's landmarks for c_m (robot_pose in the
+        landmark map's frame)."""
         p, w = self.params, self.params.weights
         target = x[:2]
         height = p.object_height if height is None else height
@@ -363,6 +378,8 @@ class Planner:
                 "distance": w.distance * distance_cost(dist[:, -1], p.d_min, p.distance_form),
                 "effort": w.effort * effort_cost(omegas),
                 "vertical": self._vertical(poses, cams, x, height),
+                "landmarks": (np.zeros(len(poses)) if landmarks is None or w.landmarks == 0.0
+                              else w.landmarks * landmark_cost(landmarks.counts(poses, self.reach), p.landmarks_needed)),
                 "clearance": clearance_cost(
                     dist, x[2], p.clearance, clearance_margin(poses, x, P, p.clearance_sigmas, p.clearance_margin_max)
                 ),
@@ -383,11 +400,12 @@ class Planner:
         return self.params.weights.vertical * cost
 
     def plan(self, robot_pose, x, P, coverage: Coverage, object_height: Optional[float] = None,
-             keep_in: Optional[KeepIn] = None) -> Plan:
+             keep_in: Optional[KeepIn] = None, landmarks: Optional[LandmarkReach] = None) -> Plan:
         """Choose the next D angular velocities (and v_y) for the robot at ``robot_pose`` and the belief (x, P).
 
         ``object_height``: the object's top above the floor, m, when the silhouettes bound it (else the
-        configured ``object_height``). ``keep_in``: the walls to keep off (c_wall), the pose in their frame."""
+        configured ``object_height``). ``keep_in``: the walls to keep off (c_wall), ``landmarks``: the
+        map's landmarks (c_m), the pose in their frame."""
         robot_pose = _checked("robot_pose", robot_pose, (3,))
         x = _checked("x", x, (3,))
         P = _checked("P", P, (3, 3))
@@ -395,7 +413,7 @@ class Planner:
             raise ValueError(f"x: object radius must be positive, got {x[2]}")
         if object_height is not None and not (math.isfinite(object_height) and object_height > 0.0):
             raise ValueError(f"object_height: expected a positive height in m, got {object_height}")
-        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height, keep_in)
+        evaluate = self.cost_function(robot_pose, x, P, coverage.seen(x), object_height, keep_in, landmarks)
         optimize = self._cem if self.params.optimizer == "cem" else self._nelder_mead
         best, evaluations = optimize(evaluate, self._warm_start())
         total, terms = evaluate(best[None])

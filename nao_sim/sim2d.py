@@ -31,6 +31,7 @@ import numpy as np
 from agent.coverage import Coverage, bins_seen
 from agent.ekf import EKFParams, ObjectEKF, measure
 from agent.keep_in import KeepIn
+from agent.landmark_reach import LandmarkReach
 from agent.motion import camera_poses, object_in_view, rollout_poses
 from agent.planner import Planner, PlannerParams, termination_reason
 from nao_core.geometry import wrap_angle
@@ -112,9 +113,10 @@ def simulate(
     policy: Policy = "planner",
     max_steps: Optional[int] = None,
     keep_in: Optional[KeepIn] = None,
+    landmarks: Optional[LandmarkReach] = None,
 ) -> SimResult:
     """Run one episode from robot pose ``start`` toward the cylinder ``truth`` = (xo, yo, r); the
-    planner keeps off the walls of ``keep_in`` if given."""
+    planner keeps off the walls of ``keep_in`` and keeps ``landmarks`` within the head's reach (c_m) if given."""
     truth = np.asarray(truth, dtype=float)
     pose = np.asarray(start, dtype=float).copy()
     p = planner_params
@@ -163,7 +165,7 @@ def simulate(
             omega = circle_omega(pose, first_estimate, p.d_min, p.speed, p.period, robot.walk.omega_max)
             command = robot.walk.clamp(p.speed, 0.0, omega)
         else:
-            plan = planner.plan(pose, ekf.x, ekf.P, coverage, keep_in=keep_in)
+            plan = planner.plan(pose, ekf.x, ekf.P, coverage, keep_in=keep_in, landmarks=landmarks)
             terms.append(plan.terms)
             command = plan.command  # already clamped to the walk limits by the planner
         command = np.array(command)

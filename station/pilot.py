@@ -160,6 +160,7 @@ import numpy as np
 from agent.camera import CameraModel, optical_axis_heading
 from agent.clearance import floor_contact, floor_distance, image_distance
 from agent.keep_in import KeepIn
+from agent.landmark_reach import LandmarkReach
 from agent.coverage import Coverage, seen_fraction
 from agent.ekf import FloorContact, ObjectEKF, UpdateResult, measure
 from agent.head_servo import ObjectHeight, head_target
@@ -284,6 +285,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
+        self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]), config.planner.landmark_min_px)
         self.calibration = SelfCalibration(config.self_calibration, self.camera, self.localizer.tilt)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
@@ -862,7 +864,8 @@ class Pilot:
                            + (f", none new for {termination.stall:g} s)" if stalled else ")"))
             self.mission.on_goal(t, reason)
             return
-        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, self.keep_in if self.anchored else None)
+        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top,
+                                 *((self.keep_in, self.landmark_reach) if self.anchored else (None, None)))
         self.command = plan.command
         step.outputs.append(PlanRecord(t, [float(w) for w in plan.omegas], tuple(map(float, plan.command)), float(plan.cost),
                                        {k: float(v) for k, v in plan.terms.items()}, int(plan.evaluations),
