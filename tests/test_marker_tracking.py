@@ -13,7 +13,7 @@ import pytest
 
 from agent.camera import CameraModel
 from agent.localization import LocalizationParams, RobotLocalizer, camera_in_world, landmarks_in_image
-from agent.marker_tracking import marker_texture, rotation_flow, smear_kernel, track_marker
+from agent.marker_tracking import SMEAR_FACTORS, marker_texture, rotation_flow, smear_kernel, track_marker
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model
@@ -83,7 +83,9 @@ def smeared_views():
 
 @pytest.fixture(scope="module")
 def localization() -> tuple[LocalizationParams, PerceptionParams]:
-    return (load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization"),
+    """The configured localization with tracking on (it is off by default, agent/marker_tracking.py)."""
+    params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
+    return (dataclasses.replace(params, track_smear_factors=SMEAR_FACTORS),
             load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception"))
 
 

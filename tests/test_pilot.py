@@ -617,8 +617,8 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
     (docs/frames.md), they weigh so little that it moves less than a quarter of that (the still
     head's start, its range from the floor contact, is already within 2 cm of the can)."""
     late, sweep = 0.07, 0.6  # s, rad/s
-    # the filter's weighting alone: markers tracked through the sweep (agent/marker_tracking.py) give fixes
-    # that turn the pose to the image and so undo most of the stamps' bias themselves
+    # the filter's weighting alone: markers tracked through the sweep (agent/marker_tracking.py) would give
+    # fixes that turn the pose to the image and so undo most of the stamps' bias themselves
     untracked = dataclasses.replace(NO_STANDSTILL, localization=dataclasses.replace(NO_STANDSTILL.localization, track_smear_factors=()))
     moved, nis = {}, {}
     for stamp_std in (0.0, 0.1):

@@ -6,7 +6,8 @@ coming into view, and turns in place at RATE rad/s for FRAMES frames 0.1 s apart
 noise and the shutter given. Each frame gets the kinematics of its exposure's middle (as the bridge
 stamps it, docs/frames.md "Exposure"), a prior 2 cm / 0.6 deg off, and is fitted four ways with the
 whole map: *told* the camera's rate (from the previous frame, as ``on_frame`` reads it) with the
-configured ``exposure`` and with ASSUMED s, the baseline *still* (rate zero and no marker
+configured ``exposure`` and with ASSUMED s, markers tracked (``SMEAR_FACTORS``: tracking is off by
+default, agent/marker_tracking.py), the baseline *still* (rate zero and no marker
 tracked: no smear in the covariance, the fit before the smear was modelled), and the baseline
 *untracked* (told, the configured exposure, the detector alone: ``track_smear_factors`` empty,
 agent/marker_tracking.py).
@@ -25,6 +26,7 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.localization import LocalizationParams, RobotLocalizer, angular_velocity, camera_rotation
+from agent.marker_tracking import SMEAR_FACTORS
 from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.robot_model import load_robot_model, nao_to_optical
@@ -51,8 +53,9 @@ def turning_fixes(shutter: float, exposures: Tuple[float, ...] = (), rate: float
     robot = load_robot_model()
     params = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization")
     untracked = dataclasses.replace(params, track_smear_factors=())
-    solvers = {True: (params, True), False: (untracked, False), UNTRACKED: (untracked, True),
-               **{e: (dataclasses.replace(params, exposure=e), True) for e in exposures}}
+    tracking = dataclasses.replace(params, track_smear_factors=SMEAR_FACTORS)
+    solvers = {True: (tracking, True), False: (untracked, False), UNTRACKED: (untracked, True),
+               **{e: (dataclasses.replace(tracking, exposure=e), True) for e in exposures}}
     perception = load(PerceptionParams, [CONFIG_DIR / "perception.yaml"], section="perception")
     camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
     drawn = sample_layout("aruco", load_randomizer().drawn_layout)
