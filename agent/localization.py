@@ -14,9 +14,10 @@ Landmark points (image u_i <-> world X_i):
   when that found fewer markers than predicted in it. Without a prior, or
   when the boxes gave fewer than ``min_points`` corners, the whole reduced frame is searched, and
   the whole full-size frame too when that found fewer than ``aruco_full_resolution_below`` markers
-  (small, far markers vanish in the reduced image). With a prior, a marker predicted in view (side
-  >= ``track_min_side_px``) that the detector missed, smeared by the camera's turn, is tracked
-  (agent/marker_tracking.py): its centre, where a template of it smeared by shares
+  (small, far markers vanish in the reduced image). With a prior and ``track_smear_factors`` given
+  (off by default: the missions' poses were worse with it, docs/landmarks.md "Markers under smear"),
+  a marker predicted in view (side >= ``track_min_side_px``) that the detector missed, smeared by
+  the camera's turn, is tracked (agent/marker_tracking.py): its centre, where a template of it smeared by shares
   ``track_smear_factors`` of the predicted smear correlates best (>= ``track_min_correlation``,
   within ``aruco_track_margin`` px of its prediction), is one more point of its own group. A fit that
   uses one has the covariance floor of ``track_pixel_sigma``, and its fix (``PoseFix.tracked``) is

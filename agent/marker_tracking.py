@@ -32,11 +32,11 @@ factors stay below 1 of a smear reckoned with a long exposure.
 
 Off by default (``localization.track_smear_factors: []``): tracked fixes came more often but the
 missions' poses were worse. The same logged frames re-run through the pilot with and without it
-(eight stress and one-wall worlds, true camera poses recorded): the camera's position error median
-rose in six of them (8.3 -> 18.1 mm, 15.0 -> 34.7, 8.7 -> 14.9), its p95 in four (33 -> 72 mm,
-24 -> 56, 48 -> 97) and fell in three (59 -> 33, 68 -> 52, 44 -> 36). Two tracked centres and a
-prior, or many tracked markers frame after frame, pull the pose with errors the fit cannot see
-(docs/landmarks.md "Markers under smear"). ``SMEAR_FACTORS`` turns it on.
+(nine stress and one-wall worlds, true camera poses recorded): the camera's position error median
+rose in seven of them (up to 15.0 -> 34.7 mm), its p95 in six (up to 33 -> 72 mm) and fell in
+three (59 -> 33 mm at most). Two tracked centres and a prior, or many tracked markers frame after
+frame, pull the pose with errors the fit cannot see (docs/landmarks.md "Markers under smear").
+``SMEAR_FACTORS`` turns it on.
 """
 
 from __future__ import annotations
