@@ -15,7 +15,7 @@ bearing b = wrap(atan2(d) - theta), and its soft count in [0, 1] is the product 
 q_m is the landmark's width in the image (px): f the camera's focal length, s_m a marker's side or a
 ball's diameter, c_m = max(0, n_m . (-d) / rho) the cosine of a marker's viewing angle (n_m its
 horizontal normal; a ball faces every way, c_m = 1), q_min the least width the detector keeps
-(``landmark_min_px``). The ramps make the count continuous, so the planner's gradient polish sees
+(localization ``aruco_min_side_px``, the localizer's own rule for a predicted marker). The ramps make the count continuous, so the planner's gradient polish sees
 it: n(p, theta) = sum_m v_a v_s.
 """
 

@@ -1205,20 +1205,17 @@ class RobotLocalizer:
         self.no_fix_reason = ""
         self.landmarks_seen = 0
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
-        self._smear = self._smear_of(camera_rate)
+        rate = _check_rate(camera_rate)
+        self._smear = self._smear_of(rate)
         try:
-            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance),
-                                 np.asarray(camera_rate, dtype=float))
+            return self._measure(image, _check_transform(T_BC), prior, _positive_covariance(prior_covariance), rate)
         except NoFix as reason:
             self.no_fix_reason = str(reason)
             return None
 
-    def _smear_of(self, camera_rate: Sequence[float]) -> np.ndarray:
-        """px, the smear at the principal point over ``exposure`` (module docstring, Smear); ValueError
-        when ``camera_rate`` is not three finite numbers."""
-        rate = np.asarray(camera_rate, dtype=float)
-        if rate.shape != (3,) or not np.all(np.isfinite(rate)):
-            raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
+    def _smear_of(self, rate: np.ndarray) -> np.ndarray:
+        """px, the smear at the principal point over ``exposure`` of a camera turning at ``rate`` (checked)
+        (module docstring, Smear)."""
         return self.params.exposure * rotation_flow(np.zeros((1, 2)), rate, (self.camera.K[0, 0], self.camera.K[1, 1]))[0]
 
     def _frame_tilt_covariance(self, T_BC: np.ndarray, roll_sigma: float) -> np.ndarray:
@@ -1268,7 +1265,7 @@ class RobotLocalizer:
         for ``measure``), or None (``no_fix_reason`` says why). For tests and tools."""
         self.no_fix_reason = ""
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
-        self._smear = self._smear_of(camera_rate)
+        self._smear = self._smear_of(_check_rate(camera_rate))
         try:
             model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
@@ -1872,6 +1869,14 @@ def _from_mean(p: np.ndarray, mean: np.ndarray) -> np.ndarray:
     offset = p - mean
     offset[2] = wrap_angle(offset[2])
     return offset
+
+
+def _check_rate(camera_rate: Sequence[float]) -> np.ndarray:
+    """The camera's angular velocity as three finite rad/s; ValueError naming it otherwise."""
+    rate = np.asarray(camera_rate, dtype=float)
+    if rate.shape != (3,) or not np.all(np.isfinite(rate)):
+        raise ValueError(f"camera_rate must be three finite rad/s, got {camera_rate!r}")
+    return rate
 
 
 def _positive_covariance(covariance: Optional[np.ndarray]) -> Optional[np.ndarray]:

@@ -158,7 +158,6 @@ class PlannerParams:
     vertical_margin: float = field(metadata=bounds(0.0, 0.5))  # m of c_h: rad kept between the object and the image border
     object_height: float = field(metadata=bounds(0.01, 5.0))  # H assumed until the silhouettes bound the top, m
     landmarks_needed: float = field(metadata=bounds(0.0, 100.0))  # N of c_m: landmarks the head should be able to turn to
-    landmark_min_px: float = field(metadata=bounds(1.0, 1000.0))  # q_min of c_m: the least landmark width detected, px
     coverage: CoverageParams
     optimizer: Literal["cem", "nelder_mead"]
     cem: CEMParams

@@ -285,7 +285,8 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
-        self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]), config.planner.landmark_min_px)
+        self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]),
+                                                     config.localization.aruco_min_side_px)  # the planner's c_m
         self.calibration = SelfCalibration(config.self_calibration, self.camera, self.localizer.tilt)
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         self.standstill = CalibrationStandstill(config.self_calibration, config.mission.gaze_dwell, config.mission.head_tolerance,
@@ -864,8 +865,8 @@ class Pilot:
                            + (f", none new for {termination.stall:g} s)" if stalled else ")"))
             self.mission.on_goal(t, reason)
             return
-        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top,
-                                 *((self.keep_in, self.landmark_reach) if self.anchored else (None, None)))
+        walls, landmarks = (self.keep_in, self.landmark_reach) if self.anchored else (None, None)  # in the map's frame only
+        plan = self.planner.plan(np.asarray(self.pose), x, P, self.coverage, self.height.top, walls, landmarks)
         self.command = plan.command
         step.outputs.append(PlanRecord(t, [float(w) for w in plan.omegas], tuple(map(float, plan.command)), float(plan.cost),
                                        {k: float(v) for k, v in plan.terms.items()}, int(plan.evaluations),

@@ -12,6 +12,7 @@ from agent.coverage import Coverage
 from agent.ekf import load_ekf_params, measure
 from agent.keep_in import KeepIn
 from agent.landmark_reach import LandmarkReach
+from agent.localization import LocalizationParams
 from agent.motion import camera_poses, head_yaw_toward, object_in_view, rollout_poses
 from agent.planner import (
     VerticalView,
@@ -28,7 +29,7 @@ from agent.planner import (
     uncertainty_cost,
     view_cost,
 )
-from nao_core.config import CONFIG_DIR
+from nao_core.config import CONFIG_DIR, load
 from nao_core.landmark_map import Landmark, LandmarkMap, load_landmark_map
 from nao_core.robot_model import load_robot_model
 from nao_sim.sim2d import SimRobot, circle_omega, random_scenario, simulate
@@ -37,6 +38,7 @@ ROBOT_MODEL = load_robot_model()
 PARAMS = load_planner_params()
 EKF = load_ekf_params()
 FOCAL = ROBOT_MODEL.camera.intrinsics("vga").fx
+MIN_PX = load(LocalizationParams, [CONFIG_DIR / "localization.yaml"], section="localization").aruco_min_side_px  # c_m's q_min
 HFOV = 2.0 * math.atan(0.5 * 640 / FOCAL)
 ROBOT = SimRobot(ROBOT_MODEL.walk, HFOV, ROBOT_MODEL.head.yaw, ROBOT_MODEL.camera.offset[0])
 
@@ -257,15 +259,15 @@ def test_landmarks_count_where_the_head_can_turn_the_camera_to_them():
     fades continuously at the reach's edge."""
     planner = make_planner()
     lo, hi = planner.reach
-    one = LandmarkReach.from_map(marked_wall(ys=(0.0,)), FOCAL, PARAMS.landmark_min_px)
+    one = LandmarkReach.from_map(marked_wall(ys=(0.0,)), FOCAL, MIN_PX)
     assert one.counts(np.zeros(3), planner.reach) == pytest.approx(1.0)
     assert one.counts(np.array([0.0, 0.0, math.pi]), planner.reach) == 0.0
     assert one.counts(np.array([2.5, 0.0, math.pi]), planner.reach) == 0.0  # behind the wall: the marker faces away
-    far = FOCAL * 0.15 / PARAMS.landmark_min_px  # its width is the least kept from there
+    far = FOCAL * 0.15 / MIN_PX  # its width is the least kept from there
     assert one.counts(np.array([1.8 - far, 0.0, 0.0]), planner.reach) == 0.0
     assert one.counts(np.array([1.8 - 0.5 * far, 0.0, 0.0]), planner.reach) == pytest.approx(1.0)
     ball = LandmarkReach.from_map(LandmarkMap((Landmark(id="b", kind="color", color="green", diameter=0.12, position=(1.8, 0.0, 0.3)),)),
-                                  FOCAL, PARAMS.landmark_min_px)
+                                  FOCAL, MIN_PX)
     assert ball.counts(np.array([2.5, 0.0, math.pi]), planner.reach) == pytest.approx(1.0)
     edge = np.array([[0.0, 0.0, -hi + d] for d in np.linspace(-0.3, 0.3, 61)])  # the marker at bearing hi - d
     counts = one.counts(edge, planner.reach)
@@ -276,7 +278,7 @@ def test_landmarks_count_where_the_head_can_turn_the_camera_to_them():
 def test_a_room_marked_all_round_leaves_the_plan_as_it_was():
     """The ring of config/landmarks/sim_room.yaml keeps two landmarks and more within reach from every
     pose round the object: c_m is zero and the plan the same as without it."""
-    reach = LandmarkReach.from_map(load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml"), FOCAL, PARAMS.landmark_min_px)
+    reach = LandmarkReach.from_map(load_landmark_map(CONFIG_DIR / "landmarks" / "sim_room.yaml"), FOCAL, MIN_PX)
     x, P = np.array([0.0, 0.0, 0.05]), np.diag([0.01, 0.01, 0.005]) ** 2
     for start in (np.array([0.8, 0.0, math.pi / 2]), np.array([0.0, -0.9, 0.3]), np.array([-0.6, 0.6, -2.0])):
         plans = [make_planner(omnidirectional=True).plan(start, x, P, Coverage(PARAMS.coverage, HFOV), landmarks=lm)
@@ -321,7 +323,7 @@ def test_with_one_marked_wall_the_orbit_keeps_its_markers_within_the_head_s_reac
     head's reach falls to at most 0.7 of it without (measured 0.142 -> 0.079 over seven scenarios),
     and the missions complete as precisely and in as many steps within 10 %."""
     wall = marked_wall()
-    reach = LandmarkReach.from_map(wall, FOCAL, PARAMS.landmark_min_px)
+    reach = LandmarkReach.from_map(wall, FOCAL, MIN_PX)
     params = dataclasses.replace(PARAMS, omnidirectional=True)
     planner = make_planner(omnidirectional=True)
     short, steps = {False: [], True: []}, {False: 0, True: 0}
