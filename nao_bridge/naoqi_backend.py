@@ -84,8 +84,11 @@ in a gap of it) is dropped and counted by reason in ``kinematics_dropped``.
 from __future__ import annotations
 
 import collections
+import functools
+import ipaddress
 import logging
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -167,6 +170,24 @@ def image_to_bgr(width: int, height: int, color_space: int, buffer: Union[bytes,
         raise ValueError(f"image buffer of {len(raw)} bytes, expected {width}x{height}x{layers}")
     pixels = np.frombuffer(raw, np.uint8).reshape(height, width, layers)
     return pixels.copy() if conversion is None else cv2.cvtColor(pixels, conversion)
+
+
+def on_this_machine(host: str) -> bool:
+    """Whether every address ``host`` resolves to is this machine's: a loopback address, or one a socket
+    can bind here (an interface's own, the unspecified one). A name that does not resolve is not."""
+    try:
+        addresses = socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)
+    except (OSError, UnicodeError):
+        return False
+    for family, kind, _, _, address in addresses:
+        if ipaddress.ip_address(address[0].split("%", 1)[0]).is_loopback:
+            continue
+        try:
+            with socket.socket(family, kind) as probe:
+                probe.bind((address[0], 0) + tuple(address[2:]))
+        except OSError:
+            return False
+    return bool(addresses)
 
 
 class ClockOffset:
@@ -502,10 +523,10 @@ class NaoqiBackend(RobotBackend):
         self.motion.stopMove()
         self._walk_commanded = False
 
-    @property
+    @functools.cached_property
     def remote(self) -> bool:
-        host = self.url.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
-        return host not in ("127.0.0.1", "localhost", "::1")
+        """Whether NAOqi runs on another machine (a robot): the robot-side watchdog is then required."""
+        return not on_this_machine(self.url.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]"))
 
     def move_is_active(self) -> bool:
         if "moveIsActive" in self._motion_lacks:

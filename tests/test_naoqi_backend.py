@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import socket
 import threading
 import time
 
@@ -26,6 +27,7 @@ from nao_bridge.naoqi_backend import (
     ClockProbe,
     NaoqiBackend,
     image_to_bgr,
+    on_this_machine,
 )
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_z
@@ -527,6 +529,27 @@ def test_unreachable_robot_is_a_connection_error_naming_the_url():
     with pytest.raises(ConnectionError, match="tcp://127.0.0.1:9"):
         backend.start()
     backend.close()
+
+
+def own_address() -> str:
+    """This machine's address on its default route (a UDP connect sends nothing)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect(("203.0.113.1", 9))
+        return probe.getsockname()[0]
+
+
+@pytest.mark.parametrize("url, remote", [
+    ("tcp://127.0.0.1:9559", False), ("tcp://127.0.0.2:9559", False), ("tcp://localhost:9559", False),
+    ("tcp://[::1]:9559", False), ("tcp://0.0.0.0:9559", False), ("tcp://OWN:9559", False),
+    ("tcp://203.0.113.7:9559", True), ("tcp://nao.invalid:9559", True),
+])
+def test_a_naoqi_is_remote_unless_its_host_is_this_machine(url, remote):
+    """The robot-side watchdog is required for a NAOqi on another machine: a loopback address other than
+    127.0.0.1, or this machine's own address, is not another machine; an address of no interface here,
+    or a name that does not resolve, is."""
+    backend = NaoqiBackend(url.replace("OWN", own_address()), MODEL, NAOQI_PARAMS, "qvga", 15.0)
+    assert backend.remote is remote
+    assert on_this_machine(own_address()) and not on_this_machine("")
 
 
 def test_unknown_resolution_is_refused():
