@@ -18,7 +18,7 @@ from typing import Literal, Optional, Tuple, Union
 
 import numpy as np
 
-from nao_core.config import bounds, load
+from nao_core.config import ConfigError, bounds, load
 
 ARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
 
@@ -75,5 +75,9 @@ class LandmarkMap:
 
 
 def load_landmark_map(path: Union[str, Path]) -> LandmarkMap:
-    """Load and validate a landmark map YAML (top-level key ``landmarks``)."""
-    return load(LandmarkMap, [path])
+    """Load and validate a landmark map YAML (top-level key ``landmarks``); a map without one is refused:
+    the robot localizes by nothing else."""
+    landmark_map = load(LandmarkMap, [path])
+    if not landmark_map.landmarks:
+        raise ConfigError(f"{path}: the map has no landmarks: the robot cannot localize (docs/landmarks.md)")
+    return landmark_map

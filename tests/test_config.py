@@ -81,6 +81,9 @@ def test_landmark_map_rules(tmp_path):
     dup = write(tmp_path, "landmarks:\n  - {id: a, kind: color, color: red, position: [0,0,0]}\n  - {id: a, kind: color, color: red, position: [1,0,0]}\n")
     with pytest.raises(ConfigError, match="duplicate landmark id 'a'"):
         load_landmark_map(dup)
+    empty = write(tmp_path, "landmarks: []\n")
+    with pytest.raises(ConfigError, match="no landmarks: the robot cannot localize"):
+        load_landmark_map(empty)
 
 
 def _defaulted_fields(cls: type, path: str, seen: set) -> list:
