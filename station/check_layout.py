@@ -227,9 +227,6 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, OSError, KeyError, ValueError) as exc:
         log.error("check-layout: %s", exc)
         return EXIT_USAGE
-    if not landmarks.landmarks:
-        log.error("check-layout: %s holds no landmark", args.landmarks)
-        return EXIT_USAGE
     d_min = config.planner.d_min
     radii = args.distances or tuple(round(f * d_min, 3) for f in DISTANCE_FACTORS)
     points = predict_orbit(localizer, robot, args.object, config.head_servo.aim_height, radii, args.step)

@@ -58,6 +58,8 @@ def test_bad_arguments_are_usage_errors(tmp_path):
         main(["--landmarks", "x.yaml", "--object", "nan,oops"])
     assert exc.value.code == 2
     assert main(["--landmarks", str(tmp_path / "missing.yaml"), "--object", "0,0"]) == 2
+    (tmp_path / "empty.yaml").write_text("landmarks: []\n")
+    assert main(["--landmarks", str(tmp_path / "empty.yaml"), "--object", "0,0"]) == 2
 
 
 def test_prediction_agrees_with_the_localizer_and_gaps_wrap_around():
