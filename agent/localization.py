@@ -502,6 +502,18 @@ class PlanarModel:
         uv = self.f * X_C[:, :2] / z[:, None] + self.c
         return uv, z, J
 
+    def point_jacobian(self, p: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """d(u, v)/d X_W (N x 2 x 3) of world points X at p = (x, y, theta, delta, epsilon): the camera's
+        rotation from the world, R_CB Ry(-epsilon) Rx(-delta) Rz(theta)^T, then the projection's
+        f (I_2 / z, -(x, y) / z^2)."""
+        R_CW = self.R_CB @ _tilt(p) @ rot_z(p[2])[:3, :3].T
+        X_C = self.to_camera(p, X)
+        z = X_C[:, 2]
+        dproj = np.zeros((len(X), 2, 3))
+        dproj[:, 0, 0], dproj[:, 1, 1] = self.f[0] / z, self.f[1] / z
+        dproj[:, :, 2] = -self.f * X_C[:, :2] / z[:, None] ** 2
+        return dproj @ R_CW
+
     def intrinsics_jacobian(self, uv: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
         """d(u, v)/d(s_x, s_y, d_u, d_v) (N x 2 x 4) at projections ``uv`` (N x 2), for the intrinsics
         f_x' = f0_x (1 + s_x), f_y' = f0_y (1 + s_y), c' = c + d of agent/self_calibration.py:
@@ -1375,7 +1387,8 @@ class RobotLocalizer:
         with normal matrix H, pivoted by G (module docstring: R_fix, Pivot, Smear)."""
         uv, _, J = model.jacobian(p, points.X)
         Jr = J.reshape(-1, 5)
-        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H)) @ G.T + share_covariance
+        considered = self._smear_covariance(points, Jr, H) + self._map_covariance(model, points.X, points.group, p, Jr, H)
+        covariance = G @ (residual_var * np.linalg.inv(H) + considered) @ G.T + share_covariance
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         return covariance, uv, Jr
@@ -1403,6 +1416,33 @@ class RobotLocalizer:
             return np.zeros((5, 5))
         gains = np.linalg.solve(H, Jr.T @ np.column_stack(stretches))
         return (self.params.smear_width_sigma * length) ** 2 * gains @ gains.T
+
+    def _map_covariance(self, model: PlanarModel, X: np.ndarray, group: np.ndarray, p: np.ndarray, Jr: np.ndarray,
+                        H: np.ndarray) -> np.ndarray:
+        """The share of (x, y, theta, delta, epsilon)'s covariance from the map's own error (module docstring,
+        Map error): each landmark of ``group`` moved as a whole by N(0, position_sigma^2 I_3) and, a marker
+        (four points), turned about the vertical through its centre by N(0, yaw_sigma^2), through the fit's
+        residual Jacobian ``Jr`` (2N x 5) and normal matrix ``H``."""
+        position_sigma, yaw_sigma = self.landmark_map.position_sigma, self.landmark_map.yaw_sigma
+        if position_sigma == 0.0 and yaw_sigma == 0.0 or not len(X):
+            return np.zeros((5, 5))
+        dU = model.point_jacobian(p, X)
+        columns, variances = [], []
+        for g in np.unique(group):
+            mine = group == g
+            moves = [np.eye(3)[None, :, axis].repeat(mine.sum(), axis=0) for axis in range(3)]
+            spreads = [position_sigma] * 3
+            if mine.sum() >= 4:  # a marker: its facing
+                arm = X[mine] - X[mine].mean(axis=0)
+                moves.append(np.column_stack([-arm[:, 1], arm[:, 0], np.zeros(len(arm))]))
+                spreads.append(yaw_sigma)
+            for move, spread in zip(moves, spreads):
+                column = np.zeros((len(X), 2))
+                column[mine] = np.einsum("nij,nj->ni", dU[mine], move)
+                columns.append(column.ravel())
+                variances.append(spread**2)
+        gains = np.linalg.solve(H, Jr.T @ np.column_stack(columns))
+        return (gains * np.array(variances)) @ gains.T
 
     # -- markers -------------------------------------------------------------------------------
 
@@ -1679,7 +1719,7 @@ class RobotLocalizer:
         T_BC = self.tilt.correct(T_BC)
         model = PlanarModel(self.camera, T_BC)
         p = np.array([*pose, 0.0, 0.0])
-        X, _, _ = self._visible_points(model, p)
+        X, group, _ = self._visible_points(model, p)
         if len(X) < self.params.min_points:
             return len(X), None
         _, _, J = model.jacobian(p, X)
@@ -1689,7 +1729,8 @@ class RobotLocalizer:
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         G, share_covariance = head_pivot(p, float(T_BC[2, 3]), tilt_covariance, self._sway_covariance(self.params.roll_sigma))
-        return len(X), G @ (self.params.pixel_sigma**2 * np.linalg.inv(H)) @ G.T + share_covariance
+        considered = self._map_covariance(model, X, group, p, Jr, H)
+        return len(X), G @ (self.params.pixel_sigma**2 * np.linalg.inv(H) + considered) @ G.T + share_covariance
 
     def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
         """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
@@ -1697,10 +1738,10 @@ class RobotLocalizer:
         return len(X), landmarks
 
     def _visible_points(self, model: PlanarModel, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray, int]:
-        """(world points, their pixels, landmarks) predicted in view from the planar pose ``p``."""
+        """(world points, the landmark of each (an index), landmarks) predicted in view from the planar pose ``p``."""
         margin = self.params.view_margin_px
         size = np.array([self.camera.width, self.camera.height])
-        chosen = []
+        chosen, groups = [], []
         landmarks = 0
         corners = self.detector.aruco_corners
         if len(corners):
@@ -1713,6 +1754,7 @@ class RobotLocalizer:
             side = np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).min(axis=1)
             ok = facing & inside & (np.nan_to_num(side) >= self.params.aruco_min_side_px)
             chosen.append(corners.reshape(-1, 4, 3)[ok].reshape(-1, 3))
+            groups.append(np.repeat(np.arange(int(ok.sum())), 4))
             landmarks += int(ok.sum())
         if self.detector.color_landmarks and self.perception is not None:
             L = np.array([lm.position for lm in self.detector.color_landmarks], dtype=float)
@@ -1726,9 +1768,10 @@ class RobotLocalizer:
             inside = np.all((seen_at >= rim) & (seen_at <= size - 1 - rim), axis=1) & (z > MIN_DEPTH)
             seen = inside & (area >= self.perception.landmark_min_area)
             chosen.append(L[seen])
+            groups.append(landmarks + np.arange(int(seen.sum())))
             landmarks += int(seen.sum())
         X = np.vstack(chosen) if chosen else np.empty((0, 3))
-        return X, model.project(p, X)[0], landmarks
+        return X, np.concatenate(groups) if groups else np.empty(0, dtype=int), landmarks
 
     def best_landmark_view(self, pose: Pose, camera_in_robot: Callable[[float, float], np.ndarray],
                            directions: Iterable[Tuple[float, float]]) -> Optional[LandmarkView]:

@@ -61,6 +61,10 @@ class Landmark:
 @dataclass(frozen=True)
 class LandmarkMap:
     landmarks: Tuple[Landmark, ...]
+    # how well the map is measured (1 sigma): each landmark's centre on each axis, m, and each marker's
+    # facing, rad; the fixes carry what that does to them (agent/localization.py, "Map error"; default: exact)
+    position_sigma: float = field(default=0.0, metadata=bounds(0.0, 0.5))
+    yaw_sigma: float = field(default=0.0, metadata=bounds(0.0, 0.5))
 
     def __post_init__(self) -> None:
         seen = set()

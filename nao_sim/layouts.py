@@ -22,6 +22,7 @@ in the temporary directory, so that a world drawn twice names the same file.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -138,17 +139,32 @@ def sample_layout(kind: str, p: DrawnLayoutParams) -> DrawnLayout:
     return next(layout for layout in (draw_layout(np.random.default_rng(seed), p) for seed in range(1000)) if layout.kind == kind)
 
 
-def layout_yaml(layout: DrawnLayout) -> str:
-    """The layout as a landmark file (config/landmarks format, docs/landmarks.md)."""
+def map_yaml(landmark_map: LandmarkMap, header: str) -> str:
+    """A landmark file (config/landmarks format, docs/landmarks.md) of ``landmark_map``, after ``header``."""
     rows = []
-    for lm in layout.landmarks.landmarks:
-        row = {"id": lm.id, "kind": lm.kind, "position": list(lm.position)}
+    for lm in landmark_map.landmarks:
+        row = {"id": lm.id, "kind": lm.kind, "position": [float(v) for v in lm.position]}
         row.update({"dictionary": lm.dictionary, "size": lm.size, "yaw": lm.yaw} if lm.kind == "aruco"
                    else {"color": lm.color, "diameter": lm.diameter})
         rows.append(row)
-    header = (f"# A drawn layout (nao_sim/layouts.py): {layout.kind}, {len(rows)} landmarks on the walls of a room of "
-              f"half size {layout.half_size:.3f} m\n")
-    return header + yaml.safe_dump({"landmarks": rows}, sort_keys=False, default_flow_style=None)
+    precision = {k: v for k, v in (("position_sigma", landmark_map.position_sigma), ("yaw_sigma", landmark_map.yaw_sigma)) if v}
+    return header + yaml.safe_dump({"landmarks": rows, **precision}, sort_keys=False, default_flow_style=None)
+
+
+def layout_yaml(layout: DrawnLayout) -> str:
+    """The layout as a landmark file."""
+    return map_yaml(layout.landmarks, f"# A drawn layout (nao_sim/layouts.py): {layout.kind}, {len(layout.landmarks.landmarks)} "
+                                      f"landmarks on the walls of a room of half size {layout.half_size:.3f} m\n")
+
+
+def measured(landmark_map: LandmarkMap, position_sigma: float, yaw_sigma: float, rng: np.random.Generator,
+             told: bool = True) -> LandmarkMap:
+    """``landmark_map`` as a user measures it: each landmark's centre moved by N(0, position_sigma^2 I_3), each
+    marker's facing by N(0, yaw_sigma^2); ``told``: the map says so (its ``position_sigma``, ``yaw_sigma``)."""
+    moved = tuple(dataclasses.replace(lm, position=tuple(float(v) for v in np.add(lm.position, rng.normal(0.0, position_sigma, 3))),
+                                      yaw=float(lm.yaw + rng.normal(0.0, yaw_sigma)) if lm.kind == "aruco" else lm.yaw)
+                  for lm in landmark_map.landmarks)
+    return LandmarkMap(moved, position_sigma if told else 0.0, yaw_sigma if told else 0.0)
 
 
 def layout_file(layout: DrawnLayout) -> Path:

@@ -54,7 +54,7 @@ from nao_core.config import CONFIG_DIR, ConfigError, bounds, load
 from nao_core.geometry import Pose
 from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import CameraIntrinsics, RobotModel, load_robot_model
-from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file, one_wall
+from nao_sim.layouts import DrawnLayoutParams, draw_layout, layout_file, map_yaml, measured, one_wall
 from nao_sim.scenarios import Room, Scenario, SimConfig, load_sim_config
 from nao_sim.world import SimWorld
 
@@ -91,6 +91,8 @@ class Randomizer:
     mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
     shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
     lens_distortion: Tuple[float, float, float] = field(metadata=bounds(0.0, 0.3))  # largest |k1|, |k2|, |p1| and |p2|
+    map_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.5))  # the station's map measured off: m per axis, rad of facing (1 sigma)
+    map_error_told: bool  # the station's map says how well it is measured (its position_sigma, yaw_sigma)
     floor_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))  # BGR paints to draw from
     wall_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))
     light_elevation: Tuple[float, float] = field(metadata=bounds(0.1, math.pi / 2))  # rad above the horizon
@@ -143,6 +145,8 @@ class WorldSpec:
     start: Pose
     bare_naoqi: bool = False  # served by StandIn(bare=True)
     object_color: str = "red"  # the object's perception colour class (the station's perception.object_color)
+    map_error: Tuple[float, float] = (0.0, 0.0)  # the station's map measured this far off (m, rad; ``station_map``)
+    map_error_told: bool = True
 
     @property
     def lens(self) -> Tuple[float, ...]:
@@ -157,6 +161,17 @@ class WorldSpec:
             return {}
         resolutions = {name: {"dist": list(self.lens)} for name in self.robot.camera.resolutions}
         return {"robot": {"camera": {"resolutions": resolutions}}}
+
+    def station_map(self) -> str:
+        """The landmark file the station is given: the world's, or with ``map_error`` each landmark moved by
+        N(0, sigma^2 I_3) and each marker turned by N(0, sigma_yaw^2), as a user's tape measures it (drawn
+        from ``default_rng([seed, 3])``), saying so when ``map_error_told`` (nao_sim/layouts.py ``measured``)."""
+        exact = load_landmark_map(self.landmark_path)
+        if not any(self.map_error):
+            return map_yaml(exact, "# the world's landmark map\n")
+        measured_map = measured(exact, *self.map_error, np.random.default_rng([self.seed, 3]), self.map_error_told)
+        return map_yaml(measured_map, f"# the world's landmark map measured off by {self.map_error[0] * 1e3:g} mm and "
+                                      f"{math.degrees(self.map_error[1]):g} deg (1 sigma)\n")
 
     def station_robot(self) -> RobotModel:
         """The configured robot model (NAO V6) as the station holds it in this world (``station_overrides``)."""
@@ -258,7 +273,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     scenario = dataclasses.replace(scenario, color=tuple(int(c) for c in r.object_colors[object_color]))
     config = dataclasses.replace(config, scenarios={object_name: scenario})
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,
-                     object_color)
+                     object_color, tuple(float(e) for e in r.map_error), r.map_error_told)
 
 
 class RandomWorld(SimWorld):

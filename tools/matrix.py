@@ -62,7 +62,6 @@ import math
 import os
 import platform
 import re
-import shutil
 import subprocess
 import sys
 import threading
@@ -265,7 +264,7 @@ def run_mission(seed: int, out: Path, resolution: Optional[str] = None, max_dura
     spec = spec or random_world(seed)
     (out / "world.json").write_text(json.dumps(spec.summary(), indent=2) + "\n")
     landmarks = out / "landmarks.yaml"  # the run keeps the map it was given (a drawn layout's lives in a temporary folder)
-    shutil.copyfile(spec.landmark_path, landmarks)
+    landmarks.write_text(spec.station_map())
     override = out / "station.yaml"
     override.write_text(yaml.safe_dump({"station": {"landmark_map": str(landmarks.resolve()), "resolution": resolution},
                                         "perception": {"object_color": spec.object_color}, **spec.station_overrides()}))
