@@ -228,6 +228,23 @@ each with the scales' rows (Phi for F, [K; L K] for K: P_t and X are kept for (p
 P_t is what the object filter weighs the camera pose by (docs/estimation.md, "Pose uncertainty");
 P, what more fixes can reduce, drives the landmark lookout.
 
+Map error. A user's map is measured with a tape: each landmark's centre a few millimetres off, a
+marker's facing a degree or so. A fit that holds the map exact is off by what that does to it, and far
+markers near the camera's height range by their rows, so a height error moves a fix by about r / dh
+times itself (rendered still frames of the wall layout, the map 5 mm and 0.5 deg off: median error
+2.5 -> 21 mm, worst 145 mm, NEES 51; docs/landmarks.md "Writing the map"). Each landmark m is a considered
+parameter, moved as a whole by N(0, sigma_p^2 I_3) (``LandmarkMap.position_sigma``) and, a marker, turned
+about the vertical through its centre by N(0, sigma_psi^2) (``yaw_sigma``):
+
+    C_fix += G (sum_m sum_k g_mk g_mk^T sigma_k^2) G^T,   g_mk = H^-1 J^T (d u / d X_W) d_mk,
+
+d_mk the move of its points (a unit axis; z x (X_i - X_bar_m) for the turn) and d u / d X_W =
+f (I_2 / z, -(x, y) / z^2) R_CW (``PlanarModel.point_jacobian``); predicted fixes carry it too. The map
+file says how well it is measured; absent, it is taken as exact, as a simulated room's is. Told, the
+fixes say what they are worth (NEES 3 in tests/test_localization.py's Monte Carlo, 170 untold) and the
+precision gate drops the ones the map makes imprecise. The reprojection gates do not widen with it:
+markers whose mapped places disagree by more than 2-3 px in the image give no fix together.
+
 Smear. A camera turning at omega (rad/s, its optical frame) during an exposure T smears the image
 by s = T (-f_x omega_y, f_y omega_x) px, the rotation flow at the principal point
 (agent/marker_tracking.py ``rotation_flow``; a turn about the optical axis is neglected). The frame's

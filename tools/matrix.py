@@ -409,7 +409,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
         f"and {ranges.exposure[0]:g}-{ranges.exposure[1]:g} of the brightness, its shutter open {1e3 * ranges.shutter[0]:g}-{1e3 * ranges.shutter[1]:g} ms "
         f"(motion blur), in a room painted one of {len(ranges.floor_colors)} floors and {len(ranges.wall_colors)} walls, lit from any azimuth "
         f"{math.degrees(ranges.light_elevation[0]):.0f}-{math.degrees(ranges.light_elevation[1]):.0f} deg up with "
-        f"{ranges.ambient[0]:g}-{ranges.ambient[1]:g} of ambient light. Errors over completed missions (centre: the result's, the carved model's "
+        f"{ranges.ambient[0]:g}-{ranges.ambient[1]:g} of ambient light{_map_sentence(ranges)}. Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
         "origin to the object's outline), the wall distance the least from it to the room's walls; focal error: the camera the mission ended with against the world's, "
         "self-calibrated or configured; tilt error: the larger of the learnt camera roll's and pitch's on its mount against the world's "
@@ -439,8 +439,18 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
     return "\n".join(lines)
 
 
+def _map_sentence(ranges: Randomizer) -> str:
+    """How the station's map is off the world's, for the table's first sentence ("" when exact)."""
+    position, yaw = ranges.map_error
+    if not position and not yaw:
+        return ""
+    return (f", the station's landmark map measured off by N(0, {1e3 * position:g} mm) per axis and each marker's facing by "
+            f"N(0, {math.degrees(yaw):g} deg) (nao_sim/layouts.py `measured`), the map {'saying' if ranges.map_error_told else 'not saying'} so")
+
+
 SECTIONS = {"matrix": "Mission matrix: randomized worlds through the NAOqi stand-in",
             "stress": "Stress worlds: the matrix with its ranges widened (`--ranges`, config/stress.yaml)",
+            "map_error": "Maps measured off: the matrix's worlds, the station's map off as a tape measures it (`--ranges config/map_error.yaml --section map_error`)",
             "one_wall": "One-wall rooms: the matrix's worlds with landmarks on one wall only (`--one-wall`)"}
 ONE_WALL_NOTE = ("Each world is the matrix's world of the same seed, its layout drawn as users lay them out and cut to its "
                  "most-marked wall (nao_sim/layouts.py `one_wall`); the layout sentence below is the draw before the cut.\n\n")
@@ -464,6 +474,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--rebuild", action="store_true", help="no missions: the table from the runs already in --out")
     parser.add_argument("--ranges", type=Path, help="randomizer overrides (e.g. config/stress.yaml): the stress section")
     parser.add_argument("--one-wall", action="store_true", help="landmarks on the most-marked wall only: the one_wall section")
+    parser.add_argument("--section", choices=("stress", "map_error"), default="stress", help="the section a --ranges run writes")
     args = parser.parse_args(argv)
     if args.count < 1:
         parser.error("--count must be at least 1")
@@ -490,9 +501,9 @@ def main(argv: Optional[List[str]] = None) -> int:
               f"({time.monotonic() - start:.0f} s wall)", file=sys.stderr, flush=True)
     machine = (f"Run {time.strftime('%Y-%m-%d')} on {platform.machine()} with {os.cpu_count()} cores, "
                f"shared with other work (wall times vary; durations are the station's mission time).")
-    name = "stress" if args.ranges else "one_wall" if args.one_wall else "matrix"
+    name = args.section if args.ranges else "one_wall" if args.one_wall else "matrix"
     command = {"stress": f"`python -m tools.matrix --ranges {args.ranges}`", "one_wall": "`python -m tools.matrix --one-wall`",
-               "matrix": MATRIX_COMMAND}[name]
+               "map_error": f"`python -m tools.matrix --ranges {args.ranges} --section map_error`", "matrix": MATRIX_COMMAND}[name]
     write_section(args.doc, (ONE_WALL_NOTE if args.one_wall else "") + table(results, resolution, machine, ranges, command), name)
     print(f"matrix: wrote the {name} section of {args.doc}", file=sys.stderr)
     return 0

@@ -13,7 +13,11 @@ missed, the standing roll prior ``roll_sigma_still``: the issue's "still frames"
 on its mount not yet learnt (agent/camera_tilt.py: a mission's first standing frames); *still, cold,
 tilt learnt*: the same, the tilt learnt (its std at ``camera_tilt_floor``: the rest of a mission's
 standing frames); *still, cold, camera tilted*: the same views in a world whose camera sits MOUNT_DEG
-degrees (roll, pitch down) off on its mount, tilt not learnt (agent/localization.py, Pivot); *prior*:
+degrees (roll, pitch down) off on its mount, tilt not learnt (agent/localization.py, Pivot); *still,
+cold, map off*: the still frames localized with the map measured MAP_ERROR off (each landmark moved by
+N(0, 5 mm) per axis, each marker turned by N(0, 1 deg): nao_sim/layouts.py ``measured``), the map
+saying so (*told*: its ``position_sigma`` and ``yaw_sigma``) or held exact (*untold*; agent/localization.py,
+Map error); *prior*:
 with a prior 3.6 cm / 1.1 deg off (tracking), the fix alone; *prior with covariance*: the same prior
 with its covariance (std 3 cm in x and y, 0.02 rad in heading), as ``on_frame`` gives it: a frame too imprecise alone gives a fix
 conditioned on the prior (agent/localization.py, Conditioned fixes), whose error is then the
@@ -43,7 +47,7 @@ from agent.perception import PerceptionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.geometry import rot_x, rot_y
 from nao_core.robot_model import load_robot_model
-from nao_sim.layouts import KINDS, layout_file, sample_layout
+from nao_sim.layouts import KINDS, layout_file, measured, sample_layout
 from nao_sim.randomize import load_randomizer
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld, orbit_pose
@@ -55,6 +59,7 @@ HELD = 1e-5  # rad, the baseline's pitch prior: held
 LAYOUTS = {"sim_room": 3.0, "walls": 2.0, "colours": 2.0, "mixed": 2.0, "sparse": 2.0}  # room half size, m
 PRIOR_OFFSET = (0.03, -0.02, 0.02)  # m, m, rad
 PRIOR_COVARIANCE = np.diag([0.03, 0.03, 0.02]) ** 2  # m^2, m^2, rad^2: the covariance the prior says it has
+MAP_ERROR = (0.005, math.radians(1.0))  # m per axis, rad of facing: the map of the "map off" modes, as a tape measures it
 MOUNT_DEG = (0.5, 1.0)  # the tilted camera's roll and pitch on its mount, degrees (the matrix draws within these)
 
 
@@ -83,12 +88,16 @@ def _layout(name: str, landmarks: str, half_size: float) -> Tuple[List[str], str
     learnt = RobotLocalizer(dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2), world.landmarks,
                             camera, perception)
     subpix = RobotLocalizer(dataclasses.replace(params, aruco_edge_refinement=False), world.landmarks, camera, perception)
+    off = [RobotLocalizer(params, measured(world.landmarks, *MAP_ERROR, np.random.default_rng(7), told), camera, perception)
+           for told in (True, False)]
     # (mode, localizer, with the prior, the prior's covariance given, standing: the frame's own T_BC and the
     # standing roll prior, the tilted camera's frame)
     solvers = (("cold", localizer, False, False, False, False), ("still, cold", localizer, False, False, True, False),
                ("still, cold, tilt learnt", learnt, False, False, True, False),
                ("still, cold, camera tilted", localizer, False, False, True, True),
                ("prior", localizer, True, False, False, False), ("prior with covariance", localizer, True, True, False, False),
+               ("still, cold, map off, told", off[0], False, False, True, False),
+               ("still, cold, map off, untold", off[1], False, False, True, False),
                ("cold, pitch held", held, False, False, False, False),
                ("cold, cornerSubPix corners", subpix, False, False, False, False))
     rng = np.random.default_rng(1)
