@@ -229,21 +229,24 @@ P_t is what the object filter weighs the camera pose by (docs/estimation.md, "Po
 P, what more fixes can reduce, drives the landmark lookout.
 
 Map error. A user's map is measured with a tape: each landmark's centre a few millimetres off, a
-marker's facing a degree or so. A fit that holds the map exact is off by what that does to it, and far
-markers near the camera's height range by their rows, so a height error moves a fix by about r / dh
-times itself (rendered still frames of the wall layout, the map 5 mm and 0.5 deg off: median error
-2.5 -> 21 mm, worst 145 mm, NEES 51; docs/landmarks.md "Writing the map"). Each landmark m is a considered
-parameter, moved as a whole by N(0, sigma_p^2 I_3) (``LandmarkMap.position_sigma``) and, a marker, turned
-about the vertical through its centre by N(0, sigma_psi^2) (``yaw_sigma``):
+marker's facing a degree or so. A fit that holds the map exact is off by several times that: the joint
+fit reads the markers' places relative to each other, which the map's errors distort, and trades them
+against the tilt and the heading (rendered still frames, the map 5 mm off along the walls: median error
+1.3 -> 60 mm in the ring, 2.5 -> 29 mm on the walls; docs/landmarks.md "Writing the map"). Each landmark
+m is moved as a whole by N(0, sigma_p^2 I_3) (``LandmarkMap.position_sigma``) and, a marker, turned about
+the vertical through its centre by N(0, sigma_psi^2) (``yaw_sigma``), which moves its points' pixels by
+D_m (2 k_m x 4: d u / d X_W d_mk, d_mk a unit axis or z x (X_i - X_bar_m) for the turn; d u / d X_W =
+f (I_2 / z, -(x, y) / z^2) R_CW, ``PlanarModel.point_jacobian``). The fit is then generalized least
+squares: each landmark's residuals and Jacobian rows are whitened by A_m,
 
-    C_fix += G (sum_m sum_k g_mk g_mk^T sigma_k^2) G^T,   g_mk = H^-1 J^T (d u / d X_W) d_mk,
+    A_m^T A_m = sigma_px^2 (sigma_px^2 I + D_m S D_m^T)^-1,   S = diag(sigma_p^2 (three), sigma_psi^2),
 
-d_mk the move of its points (a unit axis; z x (X_i - X_bar_m) for the turn) and d u / d X_W =
-f (I_2 / z, -(x, y) / z^2) R_CW (``PlanarModel.point_jacobian``); predicted fixes carry it too. The map
-file says how well it is measured; absent, it is taken as exact, as a simulated room's is. Told, the
-fixes say what they are worth (NEES 3 in tests/test_localization.py's Monte Carlo, 170 untold) and the
-precision gate drops the ones the map makes imprecise. The reprojection gates do not widen with it:
-markers whose mapped places disagree by more than 2-3 px in the image give no fix together.
+at every Gauss-Newton step (``PlanarModel.whiten``), so a marker's own shape counts for its pose and its
+mapped place only as much as the map is worth; H, the residuals the gates and the covariance read, the
+smear's and the intrinsics' columns are all the whitened ones, and predicted fixes are likewise. Told
+the map's sigmas, the fixes are better and honest (tests/test_localization.py's Monte Carlo, 5 mm and
+1 deg: median error 16.5 -> 6.6 mm, NEES 170 -> 2.8, every frame a fix). The map file says how well it
+is measured; absent, it is exact (A = I), as a simulated room's is.
 
 Smear. A camera turning at omega (rad/s, its optical frame) during an exposure T smears the image
 by s = T (-f_x omega_y, f_y omega_x) px, the rotation flow at the principal point
@@ -469,9 +472,12 @@ class _Points:
 class PlanarModel:
     """Projection of world points by a robot pose on the floor, with T_BC and the camera intrinsics."""
 
-    def __init__(self, camera: CameraModel, T_BC: np.ndarray):
+    def __init__(self, camera: CameraModel, T_BC: np.ndarray, map_error: Tuple[float, float, float] = (0.0, 0.0, 1.0)):
+        """``map_error``: (position_sigma m, yaw_sigma rad, pixel_sigma px) of the map and the image points
+        (module docstring, Map error); the map exact (the default), ``whiten`` leaves rows as they are."""
         self.camera = camera
         self.T_BC = T_BC
+        self.map_error = map_error
         T_CB = invert(T_BC)
         self.R_CB, self.t_CB = T_CB[:3, :3], T_CB[:3, 3]
         K = camera.K
@@ -531,6 +537,31 @@ class PlanarModel:
         dproj[:, :, 2] = -self.f * X_C[:, :2] / z[:, None] ** 2
         return dproj @ R_CW
 
+    def whiten(self, p: np.ndarray, X: np.ndarray, group: Optional[np.ndarray], rows: np.ndarray) -> np.ndarray:
+        """``rows`` (2N x k: residuals or their derivatives, points in order) times A, the block-diagonal
+        whitening of the points' errors at p: per landmark of ``group``, A_m^T A_m = s^2 (s^2 I + D_m S D_m^T)^-1,
+        D_m its points' pixel moves under its own translation (three axes) and, a marker, turn about the
+        vertical (module docstring, Map error), S their variances, s the pixel sigma. Rows unchanged with
+        an exact map or no groups."""
+        position_sigma, yaw_sigma, pixel_sigma = self.map_error
+        if group is None or (position_sigma == 0.0 and yaw_sigma == 0.0) or not len(X):
+            return rows
+        dU = self.point_jacobian(p, X)
+        out = np.array(rows, dtype=float, copy=True)
+        for g in np.unique(group):
+            mine = np.flatnonzero(group == g)
+            moves, variances = [np.tile(axis, (len(mine), 1)) for axis in np.eye(3)], [position_sigma**2] * 3
+            if len(mine) >= 4:  # a marker: its facing
+                arm = X[mine] - X[mine].mean(axis=0)
+                moves.append(np.column_stack([-arm[:, 1], arm[:, 0], np.zeros(len(mine))]))
+                variances.append(yaw_sigma**2)
+            D = np.column_stack([np.einsum("nij,nj->ni", dU[mine], move).ravel() for move in moves])
+            C = pixel_sigma**2 * np.eye(2 * len(mine)) + (D * variances) @ D.T
+            A = pixel_sigma * np.linalg.cholesky(np.linalg.inv(C)).T
+            rows_of = np.ravel(np.column_stack([2 * mine, 2 * mine + 1]))
+            out[rows_of] = A @ out[rows_of]
+        return out
+
     def intrinsics_jacobian(self, uv: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
         """d(u, v)/d(s_x, s_y, d_u, d_v) (N x 2 x 4) at projections ``uv`` (N x 2), for the intrinsics
         f_x' = f0_x (1 + s_x), f_y' = f0_y (1 + s_y), c' = c + d of agent/self_calibration.py:
@@ -558,10 +589,12 @@ class PlanarModel:
         return _pose_of(v), float(math.hypot(v[0], v[1]))
 
     def refine(self, p0: Sequence[float], X: np.ndarray, target: np.ndarray, prior: np.ndarray,
-               iterations: int = 8, mean: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+               iterations: int = 8, mean: Optional[np.ndarray] = None,
+               group: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
         """Gauss-Newton on (x, y, theta, delta, epsilon) with the prior N(``mean``, information ``prior``)
-        (5 x 5, pixel units; the tilt's alone, ``tilt_information``, has mean 0): (p, rms, per-point error N,
-        J^T J + prior). Raises NoFix."""
+        (5 x 5, pixel units; the tilt's alone, ``tilt_information``, has mean 0), the residuals whitened by
+        the map's error per landmark of ``group`` (``whiten``): (p, rms, per-point error N, J^T J + prior),
+        the errors whitened too. Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
         mean = np.zeros(5) if mean is None else mean
@@ -569,8 +602,8 @@ class PlanarModel:
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
                 raise NoFix(f"{int(np.sum(z < MIN_DEPTH))} landmark point(s) behind the camera at the fit")
-            r = (uv - target).ravel()
-            Jr = J.reshape(-1, 5)
+            whitened = self.whiten(p, X, group, np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
+            r, Jr = whitened[:, 0], whitened[:, 1:]
             H = Jr.T @ Jr + prior
             g = Jr.T @ r + prior @ _from_mean(p, mean)
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
@@ -585,8 +618,9 @@ class PlanarModel:
         uv, z, J = self.jacobian(p, X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point(s) behind the camera at the fit")
-        err = np.linalg.norm(uv - target, axis=1)
-        Jr = J.reshape(-1, 5)
+        whitened = self.whiten(p, X, group, np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
+        err = np.linalg.norm(whitened[:, 0].reshape(-1, 2), axis=1)
+        Jr = whitened[:, 1:]
         H = Jr.T @ Jr + prior
         rms = float(np.sqrt(np.mean(err**2)))
         if not math.isfinite(rms):
@@ -1242,6 +1276,11 @@ class RobotLocalizer:
             self.no_fix_reason = str(reason)
             return None
 
+    def _model(self, T_BC: np.ndarray) -> PlanarModel:
+        """The planar model of a frame with T_BC, with the map's error (module docstring, Map error)."""
+        m = self.landmark_map
+        return PlanarModel(self.camera, T_BC, (m.position_sigma, m.yaw_sigma, self.params.pixel_sigma))
+
     def _smear_of(self, rate: np.ndarray) -> np.ndarray:
         """px, the smear at the principal point over ``exposure`` of a camera turning at ``rate`` (checked)
         (module docstring, Smear)."""
@@ -1267,7 +1306,7 @@ class RobotLocalizer:
     def _measure(self, image: np.ndarray, T_BC: np.ndarray, prior: Optional[Pose], prior_covariance: Optional[np.ndarray],
                  rate: np.ndarray) -> PoseFix:
         T_BC = self._set_tilt_prior(T_BC, self._roll_sigma)
-        model = PlanarModel(self.camera, T_BC)
+        model = self._model(T_BC)
         gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         prior_p = None
         if prior is not None and all(math.isfinite(v) for v in prior):
@@ -1296,7 +1335,7 @@ class RobotLocalizer:
         self._roll_sigma = self.params.roll_sigma if roll_sigma is None else float(roll_sigma)
         self._smear = self._smear_of(_check_rate(camera_rate))
         try:
-            model = PlanarModel(self.camera, self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
+            model = self._model(self._set_tilt_prior(_check_transform(T_BC), self._roll_sigma))
             X = np.asarray(world_points, dtype=float).reshape(-1, 3)
             u = np.asarray(pixels, dtype=float).reshape(-1, 2)
             group = np.arange(len(X)) // 4 if groups is None else np.asarray(groups, dtype=int).reshape(-1)
@@ -1374,7 +1413,7 @@ class RobotLocalizer:
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         x, y, theta = G @ p
         pose = (float(x), float(y), wrap_angle(float(theta)))
-        gain = -G @ np.linalg.solve(H, Jr.T @ model.intrinsics_jacobian(uv).reshape(-1, 4))
+        gain = -G @ np.linalg.solve(H, Jr.T @ model.whiten(p, points.X, points.group, model.intrinsics_jacobian(uv).reshape(-1, 4)))
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
@@ -1389,7 +1428,7 @@ class RobotLocalizer:
         prior_information = (G.T @ (self.params.pixel_sigma**2 * np.linalg.inv(prior_covariance)) @ G
                              + tilt_information(self.params.pixel_sigma, tilt_covariance))
         mean = np.array([*prior_p[:3], 0.0, 0.0])
-        p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean)
+        p, rms, err, H = model.refine(prior_p, points.X, points.u, prior_information, mean=mean, group=points.group)
         offset = _from_mean(p, mean)
         nis = float(np.sum(err**2) + offset @ prior_information @ offset) / self.params.pixel_sigma**2
         if not (nis <= chdtri(2 * len(points), 1.0 - self.params.conditioned_confidence) and rms <= self.params.max_reprojection_px
@@ -1403,17 +1442,16 @@ class RobotLocalizer:
         """(the pose's 3 x 3 covariance, the points' projections, the residual Jacobian 2N x 5) of a fit p
         with normal matrix H, pivoted by G (module docstring: R_fix, Pivot, Smear)."""
         uv, _, J = model.jacobian(p, points.X)
-        Jr = J.reshape(-1, 5)
-        considered = self._smear_covariance(points, Jr, H) + self._map_covariance(model, points.X, points.group, p, Jr, H)
-        covariance = G @ (residual_var * np.linalg.inv(H) + considered) @ G.T + share_covariance
+        Jr = model.whiten(p, points.X, points.group, J.reshape(-1, 5))
+        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(model, p, points, Jr, H)) @ G.T + share_covariance
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         return covariance, uv, Jr
 
-    def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray) -> np.ndarray:
+    def _smear_covariance(self, model: PlanarModel, p: np.ndarray, points: _Points, Jr: np.ndarray, H: np.ndarray) -> np.ndarray:
         """The share of (x, y, theta, delta, epsilon)'s covariance from the markers' widths along the smear
         (module docstring, Smear): sum over markers of g_m g_m^T (sigma_w |s|)^2, with the fit's residual
-        Jacobian ``Jr`` (2N x 5) and normal matrix ``H``."""
+        Jacobian ``Jr`` (2N x 5, whitened as the fit at p was: ``PlanarModel.whiten``) and normal matrix ``H``."""
         length = float(np.linalg.norm(self._smear))
         if length * self.params.smear_width_sigma == 0.0:
             return np.zeros((5, 5))
@@ -1431,40 +1469,13 @@ class RobotLocalizer:
                 stretches.append(stretch.ravel())
         if not stretches:
             return np.zeros((5, 5))
-        gains = np.linalg.solve(H, Jr.T @ np.column_stack(stretches))
+        gains = np.linalg.solve(H, Jr.T @ model.whiten(p, points.X, points.group, np.column_stack(stretches)))
         return (self.params.smear_width_sigma * length) ** 2 * gains @ gains.T
-
-    def _map_covariance(self, model: PlanarModel, X: np.ndarray, group: np.ndarray, p: np.ndarray, Jr: np.ndarray,
-                        H: np.ndarray) -> np.ndarray:
-        """The share of (x, y, theta, delta, epsilon)'s covariance from the map's own error (module docstring,
-        Map error): each landmark of ``group`` moved as a whole by N(0, position_sigma^2 I_3) and, a marker
-        (four points), turned about the vertical through its centre by N(0, yaw_sigma^2), through the fit's
-        residual Jacobian ``Jr`` (2N x 5) and normal matrix ``H``."""
-        position_sigma, yaw_sigma = self.landmark_map.position_sigma, self.landmark_map.yaw_sigma
-        if position_sigma == 0.0 and yaw_sigma == 0.0 or not len(X):
-            return np.zeros((5, 5))
-        dU = model.point_jacobian(p, X)
-        columns, variances = [], []
-        for g in np.unique(group):
-            mine = group == g
-            moves = [np.eye(3)[None, :, axis].repeat(mine.sum(), axis=0) for axis in range(3)]
-            spreads = [position_sigma] * 3
-            if mine.sum() >= 4:  # a marker: its facing
-                arm = X[mine] - X[mine].mean(axis=0)
-                moves.append(np.column_stack([-arm[:, 1], arm[:, 0], np.zeros(len(arm))]))
-                spreads.append(yaw_sigma)
-            for move, spread in zip(moves, spreads):
-                column = np.zeros((len(X), 2))
-                column[mine] = np.einsum("nij,nj->ni", dU[mine], move)
-                columns.append(column.ravel())
-                variances.append(spread**2)
-        gains = np.linalg.solve(H, Jr.T @ np.column_stack(columns))
-        return (gains * np.array(variances)) @ gains.T
 
     # -- markers -------------------------------------------------------------------------------
 
     def _refine(self, model: PlanarModel, points: _Points, seed: Sequence[float]):
-        return model.refine(seed, points.X, points.u, self._tilt_prior)
+        return model.refine(seed, points.X, points.u, self._tilt_prior, group=points.group)
 
     def _fit_markers(self, model: PlanarModel, markers: _Points, prior: Optional[np.ndarray]):
         """(inlier points, p, rms, H): the joint fit of all markers, or the largest consensus (module docstring)."""
@@ -1734,20 +1745,19 @@ class RobotLocalizer:
     def predicted_fix(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
         """(points, covariance of (x, y, theta) or None): what a frame from ``pose`` would give (module docstring)."""
         T_BC = self.tilt.correct(T_BC)
-        model = PlanarModel(self.camera, T_BC)
+        model = self._model(T_BC)
         p = np.array([*pose, 0.0, 0.0])
         X, group, _ = self._visible_points(model, p)
         if len(X) < self.params.min_points:
             return len(X), None
         _, _, J = model.jacobian(p, X)
-        Jr = J.reshape(-1, 5)
+        Jr = model.whiten(p, X, group, J.reshape(-1, 5))
         tilt_covariance = self._frame_tilt_covariance(T_BC, self.params.roll_sigma)
         H = Jr.T @ Jr + tilt_information(self.params.pixel_sigma, tilt_covariance)
         if np.linalg.cond(H) > 1e10:
             return len(X), None
         G, share_covariance = head_pivot(p, float(T_BC[2, 3]), tilt_covariance, self._sway_covariance(self.params.roll_sigma))
-        considered = self._map_covariance(model, X, group, p, Jr, H)
-        return len(X), G @ (self.params.pixel_sigma**2 * np.linalg.inv(H) + considered) @ G.T + share_covariance
+        return len(X), G @ (self.params.pixel_sigma**2 * np.linalg.inv(H)) @ G.T + share_covariance
 
     def visible_landmarks(self, pose: Pose, T_BC: np.ndarray) -> Tuple[int, int]:
         """(points, landmarks) a frame from ``pose`` would show, by the prediction's rules (module docstring)."""
