@@ -601,12 +601,23 @@ class Pilot:
         detected = fix is not None and not fix.tracked  # a tracked marker's centre is too few points for 6 DOF (matrix world 3: 2 of them)
         if detected and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
             loc = self.config.localization
-            refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, max(loc.pixel_sigma, fix.rms_px),
+            refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, self._keyframe_pixel_sigma(T_WC, fix),
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
         step.keyframe = KeyframeView(mask, T_WC, self.ekf.x.copy(), self.ekf.P.copy(), image, quality, self.camera, seq)
         self._keyframe_frames[seq] = (stamp, T_WC, detected)
         step.outputs.append(KeyframeRecord(t, seq, azimuth, _flat(T_WC), predicted, quality, _flat(self.camera.K)))
+
+    def _keyframe_pixel_sigma(self, T_WC: np.ndarray, fix: PoseFix) -> float:
+        """px: what a keyframe's landmark points are worth to its 6-DOF refinement: the fit's pixel noise or
+        (whitened) residual, and the map's own error at the points' median depth, f position_sigma / z
+        (agent/localization.py, Map error; the refinement holds the map exact)."""
+        pixel = max(self.config.localization.pixel_sigma, fix.rms_px)
+        position_sigma = self.config.landmarks.position_sigma
+        if position_sigma == 0.0:
+            return pixel
+        depth = float(np.median((np.asarray(fix.inliers[0]) - T_WC[:3, 3]) @ T_WC[:3, 2]))
+        return math.hypot(pixel, self.camera.K[0, 0] * position_sigma / max(depth, 0.1))
 
     def smoothed_keyframes(self) -> Dict[int, np.ndarray]:
         """T_WC of every keyframe (by frame seq) for the final carve: one without a fix on its frame has
