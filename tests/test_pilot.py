@@ -767,3 +767,19 @@ def test_a_frame_is_meant_to_show_the_object_when_its_estimate_s_outline_is_with
     assert pilot._object_expected(turned(0.0)) and pilot._object_expected(turned(-0.9 * edge))
     assert not pilot._object_expected(turned(1.2 * edge)) and not pilot._object_expected(turned(-1.2 * edge))
     assert not pilot._object_expected(cam_at((2.0, 0.0, 0.0), 0.0))  # behind it
+
+
+def test_a_keyframe_s_points_are_worth_the_map_s_error_at_their_depth():
+    """A keyframe's 6-DOF refinement weighs its landmark points by the fit's pixel noise, and with a map
+    measured ``position_sigma`` off also by that error at their median depth (f sigma / z): 5 mm at 2 m
+    is 1.5 px at VGA, ten times the corners' noise (agent/localization.py, Map error)."""
+    T_WC = np.eye(4)  # the camera at the origin looking along +z
+    points = np.array([[0.1, 0.0, 1.5], [-0.2, 0.1, 2.0], [0.3, -0.1, 2.5]])
+    fix = PoseFix(pose=(0.0, 0.0, 0.0), covariance=np.eye(3), rms_px=0.1, landmark_ids=(1,), points=3, T_WC=T_WC,
+                  inliers=(points, np.zeros((3, 2))))
+    exact = Pilot(CONFIG, INFO)
+    assert exact._keyframe_pixel_sigma(T_WC, fix) == CONFIG.localization.pixel_sigma
+    measured = dataclasses.replace(CONFIG, landmarks=dataclasses.replace(CONFIG.landmarks, position_sigma=0.005))
+    pilot = Pilot(measured, INFO)
+    f = pilot.camera.K[0, 0]
+    assert pilot._keyframe_pixel_sigma(T_WC, fix) == pytest.approx(math.hypot(CONFIG.localization.pixel_sigma, f * 0.005 / 2.0))
