@@ -15,7 +15,8 @@ fix's inlier points (world X_i, pinhole pixels u_i) and the fused pose (R_0, C_0
     R = R_0 Exp(omega),  C = C_0 + c,   u_i' = pi(K, R^T (X_i - C))
     min_{omega, c}  sum_i ||u_i' - u_i||^2 / s^2 + ||omega||^2 / sigma_rot^2 + ||c||^2 / sigma_pos^2
 
-with s = max(``pixel_sigma``, the fix's reprojection RMS), sigma_rot = ``keyframe_rotation_sigma``
+with s = max(``pixel_sigma``, the fix's reprojection RMS) (with a map measured sigma_p off, the pilot
+adds f sigma_p / z at the points' median depth: agent/localization.py, Map error), sigma_rot = ``keyframe_rotation_sigma``
 (what the kinematics' orientation is worth) and sigma_pos = ``keyframe_position_sigma`` (what the
 fused position is worth at a keyframe; the fused covariance does not know the kinematics' error).
 With several markers spread in the image the points fix all six degrees of freedom and the prior
