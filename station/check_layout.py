@@ -215,6 +215,15 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
     plt.close(fig)
 
 
+def map_precision(landmarks: LandmarkMap) -> str:
+    """The line that says how well the map says it is measured (docs/landmarks.md, "Writing the map")."""
+    if landmarks.position_sigma == 0.0 and landmarks.yaw_sigma == 0.0:
+        return ("map precision: exact (no position_sigma, yaw_sigma): a map measured with a tape is a few mm off, "
+                "which costs several times that in every fix unless the map says so (docs/landmarks.md)")
+    return (f"map precision: {1e3 * landmarks.position_sigma:g} mm per axis, {math.degrees(landmarks.yaw_sigma):g} deg "
+            "of facing (the predicted precision holds it)")
+
+
 def run(args: argparse.Namespace) -> int:
     """``station check-layout``: the summary on stdout, the PNG, and the exit code of the module docstring."""
     try:
@@ -233,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
     limit = config.localization.max_position_std
     print(f"{args.landmarks}: {len(landmarks.landmarks)} landmarks, object at ({args.object[0]:.2f}, {args.object[1]:.2f}) m, "
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")
+    print(map_precision(landmarks))
     for line in summarize(points, limit, args.step):
         print(line)
     keep_in, x = KeepIn(landmarks), np.array([*args.object, args.radius])

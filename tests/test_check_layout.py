@@ -10,6 +10,7 @@ import pytest
 from agent.camera import CameraModel
 from agent.localization import RobotLocalizer
 from nao_core.config import CONFIG_DIR
+from nao_core.landmark_map import load_landmark_map
 from nao_core.robot_model import load_robot_model
 from station.check_layout import OrbitPoint, add_arguments, longest_gap, predict_orbit, run
 from station.config import load_station_config
@@ -73,3 +74,25 @@ def test_prediction_agrees_with_the_localizer_and_gaps_wrap_around():
     bad = [OrbitPoint(0.8, a, math.inf, math.inf, math.nan) for a in range(3)]
     good = OrbitPoint(0.8, 0.0, 0.01, 0.01, 0.0)
     assert longest_gap([bad[0], good, good, bad[1], bad[2]], 0.025, 10.0) == 30.0  # the last two and the first
+
+
+def test_the_map_s_stated_precision_is_printed_and_widens_the_prediction(tmp_path, capsys):
+    """A map that states no precision is called exact, with the warning; one that states 1 cm says so,
+    and its predicted fix stds along the orbit are wider than the exact map's (agent/localization.py,
+    Map error)."""
+    exact = CONFIG_DIR / "landmarks" / "walls.yaml"
+    measured = tmp_path / "measured.yaml"
+    measured.write_text(exact.read_text() + "position_sigma: 0.01\nyaw_sigma: 0.02\n")
+    stds = []
+    for path, said in ((exact, "map precision: exact"), (measured, "map precision: 10 mm per axis")):
+        main(["--landmarks", str(path), "--object", "0,0", "--distances", "0.8", "--step", "45", "-o", str(tmp_path / "l.png")])
+        assert said in capsys.readouterr().out
+    config = load_station_config()
+    robot = load_robot_model()
+    camera = CameraModel.from_intrinsics(robot.camera.intrinsics("vga"))
+    for path in (exact, measured):
+        localizer = RobotLocalizer(config.localization, load_landmark_map(path), camera, config.perception)
+        points = predict_orbit(localizer, robot, (0.0, 0.0), config.head_servo.aim_height, (0.8,), 45)
+        stds.append([p.best_std for p in points])
+    finite = [(narrow, wide) for narrow, wide in zip(*stds) if math.isfinite(narrow)]
+    assert len(finite) >= 4 and all(wide > narrow for narrow, wide in finite)
