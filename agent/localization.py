@@ -300,6 +300,7 @@ from typing import Callable, Dict, Iterable, Iterator, List, Literal, Optional, 
 
 import cv2
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.special import chdtri  # inverse chi-square survival: chi2.ppf(p, k) = chdtri(k, 1 - p)
 
 from agent.camera import CameraModel
@@ -557,9 +558,11 @@ class PlanarModel:
                 variances.append(yaw_sigma**2)
             D = np.column_stack([np.einsum("nij,nj->ni", dU[mine], move).ravel() for move in moves])
             C = pixel_sigma**2 * np.eye(2 * len(mine)) + (D * variances) @ D.T
-            A = pixel_sigma * np.linalg.cholesky(np.linalg.inv(C)).T
             rows_of = np.ravel(np.column_stack([2 * mine, 2 * mine + 1]))
-            out[rows_of] = A @ out[rows_of]
+            try:  # A = s L^-1 with L L^T = C
+                out[rows_of] = pixel_sigma * solve_triangular(np.linalg.cholesky(C), out[rows_of], lower=True)
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                raise NoFix(f"the map's error does not whiten at this pose ({exc})") from None
         return out
 
     def intrinsics_jacobian(self, uv: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
@@ -1751,7 +1754,10 @@ class RobotLocalizer:
         if len(X) < self.params.min_points:
             return len(X), None
         _, _, J = model.jacobian(p, X)
-        Jr = model.whiten(p, X, group, J.reshape(-1, 5))
+        try:
+            Jr = model.whiten(p, X, group, J.reshape(-1, 5))
+        except NoFix:
+            return len(X), None
         tilt_covariance = self._frame_tilt_covariance(T_BC, self.params.roll_sigma)
         H = Jr.T @ Jr + tilt_information(self.params.pixel_sigma, tilt_covariance)
         if np.linalg.cond(H) > 1e10:
