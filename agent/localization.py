@@ -241,7 +241,7 @@ squares: each landmark's residuals and Jacobian rows are whitened by A_m,
 
     A_m^T A_m = sigma_px^2 (sigma_px^2 I + D_m S D_m^T)^-1,   S = diag(sigma_p^2 (three), sigma_psi^2),
 
-at every Gauss-Newton step (``PlanarModel.whiten``), so a marker's own shape counts for its pose and its
+at every Gauss-Newton step (``PlanarModel.whitener``), so a marker's own shape counts for its pose and its
 mapped place only as much as the map is worth; H, the residuals the gates and the covariance read, the
 smear's and the intrinsics' columns are all the whitened ones, and predicted fixes are likewise. Told
 the map's sigmas, the fixes are better and honest (tests/test_localization.py's Monte Carlo, 5 mm and
@@ -475,7 +475,7 @@ class PlanarModel:
 
     def __init__(self, camera: CameraModel, T_BC: np.ndarray, map_error: Tuple[float, float, float] = (0.0, 0.0, 1.0)):
         """``map_error``: (position_sigma m, yaw_sigma rad, pixel_sigma px) of the map and the image points
-        (module docstring, Map error); the map exact (the default), ``whiten`` leaves rows as they are."""
+        (module docstring, Map error); the map exact (the default), ``whitener`` is the identity."""
         self.camera = camera
         self.T_BC = T_BC
         self.map_error = map_error
@@ -538,17 +538,18 @@ class PlanarModel:
         dproj[:, :, 2] = -self.f * X_C[:, :2] / z[:, None] ** 2
         return dproj @ R_CW
 
-    def whiten(self, p: np.ndarray, X: np.ndarray, group: Optional[np.ndarray], rows: np.ndarray) -> np.ndarray:
-        """``rows`` (2N x k: residuals or their derivatives, points in order) times A, the block-diagonal
-        whitening of the points' errors at p: per landmark of ``group``, A_m^T A_m = s^2 (s^2 I + D_m S D_m^T)^-1,
-        D_m its points' pixel moves under its own translation (three axes) and, a marker, turn about the
-        vertical (module docstring, Map error), S their variances, s the pixel sigma. Rows unchanged with
-        an exact map or no groups."""
+    def whitener(self, p: np.ndarray, X: np.ndarray, group: Optional[np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+        """The map taking rows (2N x k: residuals or their derivatives, points in order) to A rows, A the
+        block-diagonal whitening of the points' errors at p: per landmark of ``group``,
+        A_m^T A_m = s^2 (s^2 I + D_m S D_m^T)^-1, D_m its points' pixel moves under its own translation
+        (three axes) and, a marker, turn about the vertical (module docstring, Map error), S their
+        variances, s the pixel sigma. The identity with an exact map or no groups; NoFix when a C_m has
+        no Cholesky factor."""
         position_sigma, yaw_sigma, pixel_sigma = self.map_error
         if group is None or (position_sigma == 0.0 and yaw_sigma == 0.0) or not len(X):
-            return rows
+            return lambda rows: rows
         dU = self.point_jacobian(p, X)
-        out = np.array(rows, dtype=float, copy=True)
+        factors = []  # (the landmark's rows, L_m with L_m L_m^T = C_m)
         for g in np.unique(group):
             mine = np.flatnonzero(group == g)
             moves, variances = [np.tile(axis, (len(mine), 1)) for axis in np.eye(3)], [position_sigma**2] * 3
@@ -557,13 +558,19 @@ class PlanarModel:
                 moves.append(np.column_stack([-arm[:, 1], arm[:, 0], np.zeros(len(mine))]))
                 variances.append(yaw_sigma**2)
             D = np.column_stack([np.einsum("nij,nj->ni", dU[mine], move).ravel() for move in moves])
-            C = pixel_sigma**2 * np.eye(2 * len(mine)) + (D * variances) @ D.T
-            rows_of = np.ravel(np.column_stack([2 * mine, 2 * mine + 1]))
-            try:  # A = s L^-1 with L L^T = C
-                out[rows_of] = pixel_sigma * solve_triangular(np.linalg.cholesky(C), out[rows_of], lower=True)
-            except (np.linalg.LinAlgError, ValueError) as exc:
+            try:
+                L = np.linalg.cholesky(pixel_sigma**2 * np.eye(2 * len(mine)) + (D * variances) @ D.T)
+            except np.linalg.LinAlgError as exc:
                 raise NoFix(f"the map's error does not whiten at this pose ({exc})") from None
-        return out
+            factors.append((np.ravel(np.column_stack([2 * mine, 2 * mine + 1])), L))
+
+        def whiten(rows: np.ndarray) -> np.ndarray:  # A rows = s L_m^-1 rows, landmark by landmark
+            out = np.array(rows, dtype=float, copy=True)
+            for rows_of, L in factors:
+                out[rows_of] = pixel_sigma * solve_triangular(L, out[rows_of], lower=True, check_finite=False)  # NaN flows to the fit's checks
+            return out
+
+        return whiten
 
     def intrinsics_jacobian(self, uv: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
         """d(u, v)/d(s_x, s_y, d_u, d_v) (N x 2 x 4) at projections ``uv`` (N x 2), for the intrinsics
@@ -596,7 +603,7 @@ class PlanarModel:
                group: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, np.ndarray, np.ndarray]:
         """Gauss-Newton on (x, y, theta, delta, epsilon) with the prior N(``mean``, information ``prior``)
         (5 x 5, pixel units; the tilt's alone, ``tilt_information``, has mean 0), the residuals whitened by
-        the map's error per landmark of ``group`` (``whiten``): (p, rms, per-point error N, J^T J + prior),
+        the map's error per landmark of ``group`` (``whitener``): (p, rms, per-point error N, J^T J + prior),
         the errors whitened too. Raises NoFix."""
         p = np.zeros(5)
         p[: len(p0)] = p0[:5]
@@ -605,7 +612,7 @@ class PlanarModel:
             uv, z, J = self.jacobian(p, X)
             if np.any(z < MIN_DEPTH):
                 raise NoFix(f"{int(np.sum(z < MIN_DEPTH))} landmark point(s) behind the camera at the fit")
-            whitened = self.whiten(p, X, group, np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
+            whitened = self.whitener(p, X, group)(np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
             r, Jr = whitened[:, 0], whitened[:, 1:]
             H = Jr.T @ Jr + prior
             g = Jr.T @ r + prior @ _from_mean(p, mean)
@@ -621,7 +628,7 @@ class PlanarModel:
         uv, z, J = self.jacobian(p, X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point(s) behind the camera at the fit")
-        whitened = self.whiten(p, X, group, np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
+        whitened = self.whitener(p, X, group)(np.column_stack([(uv - target).ravel(), J.reshape(-1, 5)]))
         err = np.linalg.norm(whitened[:, 0].reshape(-1, 2), axis=1)
         Jr = whitened[:, 1:]
         H = Jr.T @ Jr + prior
@@ -1401,7 +1408,7 @@ class RobotLocalizer:
             tilt_covariance, sway_covariance = tilt_covariance + widening, sway_covariance + widening
             H = H - self._tilt_prior + tilt_information(self.params.pixel_sigma, tilt_covariance)
         G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
-        covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
+        covariance, Jr, Jc = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
         std = math.sqrt(np.linalg.eigvalsh(covariance[:2, :2])[-1])
         limit = self.params.max_position_std if prior_p is None else self.params.max_position_std_with_prior
         conditioned = std > limit
@@ -1411,12 +1418,12 @@ class RobotLocalizer:
                             f"({len(points.landmark_ids)} landmarks, far or bunched)")
             p, rms, H = self._conditioned_fit(model, points, prior_p, prior_covariance, G, tilt_covariance, std)
             G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
-            covariance, uv, Jr = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
+            covariance, Jr, Jc = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
             information, evidence = np.zeros((2, 2)), np.zeros(2)  # the prior's information is not the data's
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         x, y, theta = G @ p
         pose = (float(x), float(y), wrap_angle(float(theta)))
-        gain = -G @ np.linalg.solve(H, Jr.T @ model.whiten(p, points.X, points.group, model.intrinsics_jacobian(uv).reshape(-1, 4)))
+        gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
                        points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
@@ -1442,19 +1449,22 @@ class RobotLocalizer:
 
     def _fix_covariance(self, model: PlanarModel, points: _Points, p: np.ndarray, H: np.ndarray, G: np.ndarray,
                         share_covariance: np.ndarray, residual_var: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(the pose's 3 x 3 covariance, the points' projections, the residual Jacobian 2N x 5) of a fit p
-        with normal matrix H, pivoted by G (module docstring: R_fix, Pivot, Smear)."""
+        """(the pose's 3 x 3 covariance, the residual Jacobian 2N x 5, d residuals / d intrinsics 2N x 4) of a
+        fit p with normal matrix H, pivoted by G (module docstring: R_fix, Pivot, Smear), the Jacobians
+        whitened by the map's error as the fit was (one whitening for all three)."""
         uv, _, J = model.jacobian(p, points.X)
-        Jr = model.whiten(p, points.X, points.group, J.reshape(-1, 5))
-        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(model, p, points, Jr, H)) @ G.T + share_covariance
+        whiten = model.whitener(p, points.X, points.group)
+        Jr = whiten(J.reshape(-1, 5))
+        covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H, whiten)) @ G.T + share_covariance
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
-        return covariance, uv, Jr
+        return covariance, Jr, whiten(model.intrinsics_jacobian(uv).reshape(-1, 4))
 
-    def _smear_covariance(self, model: PlanarModel, p: np.ndarray, points: _Points, Jr: np.ndarray, H: np.ndarray) -> np.ndarray:
+    def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray,
+                          whiten: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """The share of (x, y, theta, delta, epsilon)'s covariance from the markers' widths along the smear
         (module docstring, Smear): sum over markers of g_m g_m^T (sigma_w |s|)^2, with the fit's residual
-        Jacobian ``Jr`` (2N x 5, whitened as the fit at p was: ``PlanarModel.whiten``) and normal matrix ``H``."""
+        Jacobian ``Jr`` (2N x 5), normal matrix ``H`` and whitening (``PlanarModel.whitener``)."""
         length = float(np.linalg.norm(self._smear))
         if length * self.params.smear_width_sigma == 0.0:
             return np.zeros((5, 5))
@@ -1472,7 +1482,7 @@ class RobotLocalizer:
                 stretches.append(stretch.ravel())
         if not stretches:
             return np.zeros((5, 5))
-        gains = np.linalg.solve(H, Jr.T @ model.whiten(p, points.X, points.group, np.column_stack(stretches)))
+        gains = np.linalg.solve(H, Jr.T @ whiten(np.column_stack(stretches)))
         return (self.params.smear_width_sigma * length) ** 2 * gains @ gains.T
 
     # -- markers -------------------------------------------------------------------------------
@@ -1755,7 +1765,7 @@ class RobotLocalizer:
             return len(X), None
         _, _, J = model.jacobian(p, X)
         try:
-            Jr = model.whiten(p, X, group, J.reshape(-1, 5))
+            Jr = model.whitener(p, X, group)(J.reshape(-1, 5))
         except NoFix:
             return len(X), None
         tilt_covariance = self._frame_tilt_covariance(T_BC, self.params.roll_sigma)
