@@ -29,7 +29,13 @@ away. In ACTIVE, no landmark fix for ``landmarks_lost_timeout`` s, or the pose's
 (odometry since the last fix, reported with each frame) above ``landmarks_lost_std``
 ('landmarks_lost').
 In any phase before DONE, ``max_frame_failures`` frames in a row that a per-frame step failed on
-end the mission ('frame_failures'; the reason names the step and its last error). The first outcome wins; later
+end the mission ('frame_failures'; the reason names the step and its last error). No processed frame
+for ``frame_stall`` s (since the last one, or the start) holds the robot: every decision stands it
+still (``Decision.hold``: the caller adds no walk of its own) and no object, landmark or search
+clock is judged on frames that never came; ``frame_timeout`` s of it end the mission ('camera_lost':
+the bridge is connected and sends no frame the station can use). Without it a camera that stopped
+left the robot walking its last plan blind for the object-lost timeout, or turning its search, and
+the reason blamed the object. A gap that ends (a Wi-Fi stall) counts as the head looking away. The first outcome wins; later
 events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
 before anything else happens, whatever the outcome.
 
@@ -71,6 +77,7 @@ class Outcome(str, Enum):
     BRIDGE_LOST = "bridge_lost"
     INTERRUPTED = "interrupted"
     FRAME_FAILURES = "frame_failures"
+    CAMERA_LOST = "camera_lost"
 
     @property
     def success(self) -> bool:
@@ -93,6 +100,8 @@ class MissionParams:
     landmarks_lost_std: float = field(metadata=bounds(0.001, 10.0))
     no_fix_timeout: float = field(metadata=bounds(0.1, 3600.0))
     max_frame_failures: int = field(metadata=bounds(1, 100000))
+    frame_stall: float = field(metadata=bounds(0.1, 60.0))  # s without a processed frame: the robot stands until one comes
+    frame_timeout: float = field(metadata=bounds(0.1, 600.0))  # ... and this long ends the mission ('camera_lost')
     gaze_dwell: float = field(metadata=bounds(0.1, 30.0))
     lookout_std: float = field(metadata=bounds(0.001, 10.0))
     lookout_stand: float = field(metadata=bounds(0.0, 600.0))
@@ -107,6 +116,8 @@ class MissionParams:
     stop_timeout: float = field(metadata=bounds(0.0, 60.0))
 
     def __post_init__(self) -> None:
+        if self.frame_stall >= self.frame_timeout:
+            raise ValueError(f"frame_stall ({self.frame_stall} s) must be shorter than frame_timeout ({self.frame_timeout} s)")
         if self.lookout_still >= self.lookout_stand_dwell:
             raise ValueError(f"lookout_still ({self.lookout_still} s) must be shorter than lookout_stand_dwell "
                              f"({self.lookout_stand_dwell} s): the head needs the rest of the dwell to get to the look")
@@ -125,6 +136,7 @@ class Decision:
     head: Optional[Tuple[float, float]] = None  # (yaw, pitch)
     head_speed: Optional[float] = None  # fraction of the head's maximum speed; None: the station's ``head_speed``
     stop: bool = False
+    hold: bool = False  # stand still: no walk of the caller's (no frames to walk by)
     outcome: Optional[Outcome] = None
     reason: str = ""
 
@@ -149,6 +161,7 @@ class Mission:
         self._t_object: Optional[float] = None
         self._looked_away = 0.0  # s since _t_object the head was turned away from the object on purpose
         self._t_frame: Optional[float] = None  # the last processed frame's time
+        self.frames = 0  # frames processed
         self._t_fix: Optional[float] = None
         self._position_std = 0.0  # m, the pose's, as the last frame reported it
         self._scan = 0  # index of the head scan's current yaw
@@ -175,6 +188,9 @@ class Mission:
         was the head meant to be on the object (the time since the last frame of one that was not
         does not count towards ``object_lost_timeout``)."""
         self.frame_failures = 0
+        self.frames += 1
+        if self._t_frame is not None and self._t_object is not None and t - self._t_frame >= self.params.frame_stall:
+            self._looked_away += t - max(self._t_frame, self._t_object)  # no frame came to show it
         self._position_std = position_std
         self.landmark_frames += landmarks_seen or landmark_fix
         self.flooded_frames += flooded
@@ -239,6 +255,14 @@ class Mission:
             seen = "the object seen" if self._t_object is not None else "the object not seen"
             self._end(t, Outcome.LANDMARKS_LOST,
                       f"no landmark fix in {p.no_fix_timeout:g} s: landmarks detected in {self.landmark_frames} frames, {seen}")
+        silent = t - (self._t_start if self._t_frame is None else self._t_frame)
+        if self.phase in (Phase.INIT, Phase.SEARCH, Phase.LOCALIZE, Phase.ACTIVE) and silent >= p.frame_stall:
+            if silent < p.frame_timeout:
+                return Decision(self.phase, walk=(0.0, 0.0, 0.0), head=(0.0, p.init_pitch) if self.phase is Phase.INIT else None,
+                                hold=True, reason=f"no camera frame for {silent:.1f} s: standing until frames come")
+            since = "since the start" if self._t_frame is None else f"after {self.frames} frames"
+            self._end(t, Outcome.CAMERA_LOST, f"no camera frame for {silent:.1f} s {since}: the bridge is connected and "
+                                              f"sends none the station can use (the robot's camera, or the link's bandwidth)")
         elapsed = t - self._t_phase
 
         if self.phase is Phase.INIT:

@@ -5,7 +5,8 @@
 and ALAutonomousLife with the real NAOqi signatures, so :class:`NaoqiBackend` runs unchanged
 against it (``url``). Every call is recorded as ``Call(time.time(), "Service.method", args)`` in
 ``calls``; tests assert on that record (e.g. the time of the ``ALMotion.stopMove`` after the
-station went silent). ``fall()`` makes the world fall and fires the ALMemory fall signals.
+station went silent). ``fall()`` makes the world fall and fires the ALMemory fall signals;
+``freeze_camera()`` stops the camera (every later reply is its last image, a duplicate).
 
 The camera behaves like NAOqi's. Image k is captured at t_k = t_0 + k / fps (t_0 the
 subscription) and can be served only from t_k + L_k on, with a latency L_k ~ U(latency) drawn from
@@ -170,6 +171,7 @@ class ALVideoDevice:
         self._answer_color_space = answer_color_space
         self._subscribers: Dict[str, Dict[str, Any]] = {}
         self._lock = threading.Lock()
+        self.frozen = False  # the camera stopped: every reply is the last image again (``StandIn.freeze_camera``)
         self.captures: List[Tuple[float, float]] = []  # (robot stamp, world capture time) of every image served
 
     def subscribeCamera(self, name: str, camera: int, resolution: int, color_space: int, fps: int) -> str:
@@ -196,6 +198,8 @@ class ALVideoDevice:
             sub = self._subscribers.get(handle)
             if sub is None:
                 raise RuntimeError(f"ALVideoDevice.getImageRemote: unknown handle {handle!r}")
+            if self.frozen:
+                return sub["image"]
             now = time.time()
             captured = math.floor((now - sub["start"]) / sub["period"])
             if captured > sub["index"] and captured not in sub["pending"] and not self._delivery.frame(captured)[1]:
@@ -391,6 +395,10 @@ class StandIn:
             session.registerService(name, service)
         self._session = session
         return self
+
+    def freeze_camera(self) -> None:
+        """The camera stops capturing: ``getImageRemote`` answers its last image again, as a stalled camera does."""
+        self.video.frozen = True
 
     def fall(self) -> None:
         """The robot falls: the world falls and ALMemory raises both fall events."""

@@ -361,7 +361,9 @@ class Pilot:
         """The mission's decision for now, with the pilot's walk and head where the mission leaves them."""
         t = event.t
         decision = self.mission.tick(t)
-        if decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=not self._facing_turn):
+        if decision.hold:  # no frames to walk or look by: the mission's stand
+            pass
+        elif decision.phase is Phase.ACTIVE and self._calibration_standstill(t, start=not self._facing_turn):
             p = self.config.self_calibration
             decision = Decision(decision.phase, walk=(0.0, 0.0, 0.0), head=self.standstill.head(t, self._object_head()),
                                 head_speed=self.config.mission.lookout_head_speed, reason=(

@@ -29,6 +29,8 @@ MODEL = load_robot_model()
 # the self-calibration standstill at the start of ACTIVE (tests/test_pilot.py) off: the lookout follows it
 CONFIG = load_station_config()
 CONFIG = dataclasses.replace(CONFIG, self_calibration=dataclasses.replace(CONFIG.self_calibration, standstill=0.0))
+# ticks between sparse frames: the camera-silence rule (tests/test_mission.py) is not what is tested here
+CONFIG = dataclasses.replace(CONFIG, mission=dataclasses.replace(CONFIG.mission, frame_stall=1e3, frame_timeout=2e3))
 INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
             fps=15.0, state_rate_hz=20.0, deadman_s=0.3)
 W, H = INFO.intrinsics.width, INFO.intrinsics.height

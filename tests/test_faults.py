@@ -17,6 +17,7 @@ in a child process when the test kills or freezes it.
 | ``station start`` SIGKILLed mid-walk | stopMove within 300 ms; ``station report`` and ``station replay`` read its log, with a warning |
 | bridge frozen mid-mission | the station journals ``bridge_lost`` within 2 s, ends the mission, writes result.json, exits 1 |
 | frames with corrupt JPEG, wrong size, 10 s late, seq gaps | all logged; undecodable ones rejected; the mission goes on |
+| the camera stops mid-mission (the bridge alive) | no walk from ``mission.frame_stall`` + 1 s after it; the mission ends ``camera_lost`` after ``mission.frame_timeout``, naming it, exit 1 |
 
 Timing bounds here are the safety requirements of the issue (300 ms, 2 s), measured on the
 stand-in's and the link's own timestamps; they are not speed benchmarks.
@@ -40,6 +41,7 @@ import numpy as np
 import pytest
 
 import nao_bridge.bridge as bridge_module
+from agent.mission import MissionParams
 from nao_core.config import CONFIG_DIR, load
 from nao_core.protocol import FrameMeta, RobotKeys, WalkCommand, encode, encode_frame
 from nao_core.transport import TransportConfig, open_session
@@ -429,3 +431,28 @@ def test_corrupt_late_and_missing_frames_are_rejected_and_the_mission_goes_on(ro
     logged = [m.json()["seq"] for m in read_log(log, topics={FRAME_META}) if m.json()["seq"] >= 10**6]
     assert len(logged) >= 20  # logged, processed or not (the bridge's frame publisher may drop under load)
     assert len(list(read_log(log, topics={FRAME_REJECTED}))) > 0  # the loop processes only the newest of a pass
+
+
+def test_a_camera_that_stops_mid_mission_stands_the_robot_and_ends_the_mission_as_camera_lost(robot, tmp_path):
+    """The bridge stays connected and its NAOqi answers, but the camera's image never changes: the station
+    stands the robot once ``frame_stall`` passes without a frame and ends ``camera_lost`` after
+    ``frame_timeout`` (agent/mission.py), not walking its last plan blind and blaming the object."""
+    bridge, standin, port = robot
+    mission = load(MissionParams, [CONFIG_DIR / "mission.yaml"], section="mission")
+    proc = start_station(tmp_path, port)
+    try:
+        assert wait_until(lambda: len(standin.calls_to("ALMotion.move")) > 0, 90.0), (tmp_path / "station.err").read_text()[-2000:]
+        assert wait_until(standin.world.is_walking, 60.0), "the station never walked again"
+        frozen = time.time()
+        standin.freeze_camera()
+        assert proc.wait(240.0) == 1
+        ended = time.time()
+    finally:
+        proc.kill()
+    walks = [c for c in standin.calls_to("ALMotion.move") if c.time > frozen + mission.frame_stall + 1.0 and any(c.args[:3])]
+    assert walks == []
+    assert not standin.world.is_walking()
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result["status"] == "failure" and result["outcome"] == "camera_lost"
+    assert "no camera frame" in result["reason"] and "bridge is connected" in result["reason"]
+    assert ended - frozen >= mission.frame_timeout

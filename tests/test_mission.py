@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Optional
 
 import pytest
@@ -14,7 +15,9 @@ from nao_core.config import CONFIG_DIR, ConfigError, load
 DEFAULTS = load(MissionParams, [CONFIG_DIR / "mission.yaml"], section="mission")
 P = dataclasses.replace(DEFAULTS, max_duration=100.0, init_timeout=2.0, search_head_yaws=(0.0, 0.5, -0.5), search_dwell=1.0,
                   search_turn_rate=0.5, search_max_turns=1.0, object_lost_timeout=3.0,
-                  landmarks_lost_timeout=5.0, stop_timeout=1.0)
+                  landmarks_lost_timeout=5.0, stop_timeout=1.0,
+                  frame_stall=1000.0, frame_timeout=2000.0)  # most tests tick without frames: the camera rule has its own
+CAMERA = dataclasses.replace(P, frame_stall=DEFAULTS.frame_stall, frame_timeout=DEFAULTS.frame_timeout)
 DT = 0.1
 
 
@@ -28,8 +31,8 @@ def run_until(mission: Mission, t: float, t_end: float, on_tick=None):
     return t, decision
 
 
-def active_mission() -> tuple[Mission, float]:
-    mission = Mission(P)
+def active_mission(params: MissionParams = P) -> tuple[Mission, float]:
+    mission = Mission(params)
     mission.tick(0.0)
     mission.on_state(0.05, fallen=False, walking=False, head_yaw=0.0, head_pitch=P.init_pitch)
     mission.tick(0.1)
@@ -336,3 +339,53 @@ def test_same_events_same_decisions():
         mission, _ = active_mission()
         return [mission.tick(round(0.3 + i * DT, 6)) for i in range(100)]
     assert trace() == trace()
+
+
+def test_a_silent_camera_stands_the_robot_then_ends_the_mission_as_camera_lost():
+    """No frame for ``frame_stall`` s: every decision stands the robot and says why (``hold``: the pilot adds
+    no walk); ``frame_timeout`` s: 'camera_lost', naming how many frames came, not 'object_lost'."""
+    mission, t = active_mission(CAMERA)
+    t, d = run_until(mission, 0.3, 0.2 + CAMERA.frame_stall - 0.05)
+    assert d.phase is Phase.ACTIVE and d.walk is None and not d.hold
+    t, d = run_until(mission, t, t + 0.2)
+    assert d.hold and d.walk == (0.0, 0.0, 0.0) and not d.stop and re.search(r"no camera frame for 1\.\d s", d.reason)
+    assert CAMERA.object_lost_timeout < CAMERA.frame_timeout  # the object-lost clock waits for frames
+    t, d = run_until(mission, t, 0.2 + CAMERA.frame_timeout - 0.05)
+    assert d.hold and mission.outcome is None
+    t, d = run_until(mission, t, t + 0.2)
+    assert d.outcome is Outcome.CAMERA_LOST and d.stop and not d.outcome.success
+    assert re.search(r"no camera frame for 10\.\d s after 1 frames: the bridge is connected", d.reason)
+
+
+def test_frames_returning_after_a_stall_release_the_robot_and_the_gap_does_not_lose_the_object():
+    """A Wi-Fi stall longer than the object-lost timeout: the frames that follow, the object not yet in
+    them, do not end the mission at once (the gap counts as the head looking away); the object still
+    unseen for ``object_lost_timeout`` s of frames after it ends it."""
+    mission, t = active_mission(CAMERA)
+    gap = CAMERA.object_lost_timeout + 1.0
+    t, d = run_until(mission, 0.3, 0.2 + gap)
+    assert d.hold
+    unseen = lambda m, t: m.on_frame(t, object_seen=False, landmark_fix=True, localized=True)  # noqa: E731
+    t, d = run_until(mission, t, t + CAMERA.object_lost_timeout - 0.2, on_tick=unseen)
+    assert d.phase is Phase.ACTIVE and not d.hold and d.walk is None
+    t, d = run_until(mission, t, t + 0.5, on_tick=unseen)
+    assert d.outcome is Outcome.OBJECT_LOST
+
+
+def test_no_frame_from_the_start_ends_as_camera_lost_without_turning_to_search():
+    mission = Mission(CAMERA)
+    mission.tick(0.0)
+    mission.on_state(0.05, fallen=False, walking=False, head_yaw=0.0, head_pitch=CAMERA.init_pitch)
+    t, d = run_until(mission, 0.1, CAMERA.frame_stall + 0.05)
+    assert d.phase is Phase.SEARCH and d.hold and d.walk == (0.0, 0.0, 0.0)
+    turns = []
+    t, d = run_until(mission, t, CAMERA.frame_timeout + 0.05, on_tick=lambda m, t: turns.append(m.tick(t).walk))
+    assert d.outcome is Outcome.CAMERA_LOST and "since the start" in d.reason
+    assert all(w is None or w == (0.0, 0.0, 0.0) for w in turns)
+
+
+def test_a_stall_not_shorter_than_the_timeout_is_refused(tmp_path):
+    path = tmp_path / "mission.yaml"
+    path.write_text("mission:\n  frame_stall: 5.0\n  frame_timeout: 5.0\n")
+    with pytest.raises(ConfigError, match="frame_stall"):
+        load(MissionParams, [CONFIG_DIR / "mission.yaml", path], section="mission")

@@ -35,6 +35,8 @@ from station.topics import CMD_WALK, ERROR, INPUT
 
 MODEL = load_robot_model()
 CONFIG = load_station_config()
+# ticks between sparse frames: the camera-silence rule has its own test below
+CONFIG = dataclasses.replace(CONFIG, mission=dataclasses.replace(CONFIG.mission, frame_stall=1e3, frame_timeout=2e3))
 # ACTIVE without the self-calibration standstill (station/pilot.py), for tests of what follows it
 NO_STANDSTILL = dataclasses.replace(CONFIG, self_calibration=dataclasses.replace(CONFIG.self_calibration, standstill=0.0))
 INFO = Info(bridge_version="test", backend="sim", robot=MODEL, resolution="qvga", intrinsics=MODEL.camera.intrinsics("qvga"),
@@ -783,3 +785,27 @@ def test_a_keyframe_s_points_are_worth_the_map_s_error_at_their_depth():
     pilot = Pilot(measured, INFO)
     f = pilot.camera.K[0, 0]
     assert pilot._keyframe_pixel_sigma(T_WC, fix) == pytest.approx(math.hypot(CONFIG.localization.pixel_sigma, f * 0.005 / 2.0))
+
+
+def test_a_silent_camera_stands_the_robot_over_the_sweep_and_the_planner():
+    """No frame for ``frame_stall`` s: the mission's stand wins over LOCALIZE's sweep and ACTIVE's plan (the
+    pilot adds no walk of its own); a frame releases it (agent/mission.py, camera silence)."""
+    p = load_station_config().mission  # the configured stall and timeout
+    config = dataclasses.replace(CONFIG, mission=p)
+    pilot = Pilot(config, INFO)
+    pilot.mission.on_state(0.0, fallen=False, walking=False, head_yaw=0.0, head_pitch=p.init_pitch)
+    pilot.mission.tick(0.0)
+    pilot.mission.on_frame(0.1, object_seen=True, landmark_fix=False, localized=False)
+    pilot.pose = (0.0, 0.0, 0.0)
+    pilot.ekf.initialize((0.0, 0.0, 0.0), 0.0, 0.1)
+    t = 0.1 + p.localize_turn_after + 0.5  # the sweep is due ...
+    pilot.mission.on_frame(t - 0.5 * p.frame_stall, object_seen=True, landmark_fix=False, localized=False)
+    assert pilot.handle(Tick(t)).decision.walk[2] != 0.0
+    held = pilot.handle(Tick(t + p.frame_stall)).decision  # ... but no frame came for frame_stall s
+    assert held.hold and held.walk == (0.0, 0.0, 0.0) and "no camera frame" in held.reason
+    pilot.mission.on_frame(t + p.frame_stall + 0.1, object_seen=True, landmark_fix=True, localized=True)
+    assert pilot.mission.phase is Phase.ACTIVE
+    pilot.command = (0.1, 0.0, 0.2)  # the planner's walk
+    assert pilot.handle(Tick(t + p.frame_stall + 0.2)).decision.walk == pilot.command
+    held = pilot.handle(Tick(t + 2.5 * p.frame_stall)).decision
+    assert held.hold and held.walk == (0.0, 0.0, 0.0)
