@@ -147,7 +147,7 @@ def map_yaml(landmark_map: LandmarkMap, header: str) -> str:
         row.update({"dictionary": lm.dictionary, "size": lm.size, "yaw": lm.yaw} if lm.kind == "aruco"
                    else {"color": lm.color, "diameter": lm.diameter})
         rows.append(row)
-    precision = {k: v for k, v in (("position_sigma", landmark_map.position_sigma), ("yaw_sigma", landmark_map.yaw_sigma)) if v}
+    precision = {"position_sigma": float(landmark_map.position_sigma), "yaw_sigma": float(landmark_map.yaw_sigma)}  # stated, 0 too
     return header + yaml.safe_dump({"landmarks": rows, **precision}, sort_keys=False, default_flow_style=None)
 
 

@@ -41,7 +41,7 @@ from agent.localization import RobotLocalizer, head_directions
 from agent.planner import Planner
 from nao_core.config import ConfigError
 from nao_core.geometry import wrap_angle
-from nao_core.landmark_map import LandmarkMap, load_landmark_map
+from nao_core.landmark_map import LandmarkMap, load_landmark_map, unstated_precision
 from nao_core.robot_model import RobotModel, load_robot_model
 from station.config import load_station_config
 
@@ -215,13 +215,16 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
     plt.close(fig)
 
 
-def map_precision(landmarks: LandmarkMap) -> str:
-    """The line that says how well the map says it is measured (docs/landmarks.md, "Writing the map")."""
+def map_precision(landmarks: LandmarkMap, unstated: Tuple[str, ...] = ()) -> str:
+    """The line that says how well the map says it is measured (docs/landmarks.md, "Writing the map"); ``unstated``:
+    the precision keys the file left out (``unstated_precision``)."""
     if landmarks.position_sigma == 0.0 and landmarks.yaw_sigma == 0.0:
-        return ("map precision: exact (no position_sigma, yaw_sigma): a map measured with a tape is a few mm off, "
+        return ("map precision: exact (position_sigma and yaw_sigma 0): a map measured with a tape is a few mm off, "
                 "which costs several times that in every fix unless the map says so (docs/landmarks.md)")
+    told = (f" (the file does not state {' or '.join(unstated)}: a tape's taken; write what you measured)" if unstated
+            else "")
     return (f"map precision: {1e3 * landmarks.position_sigma:g} mm per axis, {math.degrees(landmarks.yaw_sigma):g} deg "
-            "of facing (the predicted precision holds it)")
+            f"of facing{told} (the predicted precision holds it)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -242,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     limit = config.localization.max_position_std
     print(f"{args.landmarks}: {len(landmarks.landmarks)} landmarks, object at ({args.object[0]:.2f}, {args.object[1]:.2f}) m, "
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")
-    print(map_precision(landmarks))
+    print(map_precision(landmarks, unstated_precision(args.landmarks)))
     for line in summarize(points, limit, args.step):
         print(line)
     keep_in, x = KeepIn(landmarks), np.array([*args.object, args.radius])
