@@ -35,8 +35,8 @@ still (``Decision.hold``: the caller adds no walk of its own) and no object, lan
 clock is judged on frames that never came; ``frame_timeout`` s of it end the mission ('camera_lost':
 the bridge is connected and sends no frame the station can use). Without it a camera that stopped
 left the robot walking its last plan blind for the object-lost timeout, or turning its search, and
-the reason blamed the object. A gap that ends (a Wi-Fi stall) counts as the head looking away. The first outcome wins; later
-events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
+the reason blamed the object. A gap that ends (a Wi-Fi stall) counts as the head looking away.
+The first outcome wins; later events cannot change it. Every decision from DONE on carries ``stop=True``: the robot is stopped
 before anything else happens, whatever the outcome.
 
 In LOCALIZE the mission keeps the robot still and leaves the head to the caller; in ACTIVE it
