@@ -1,7 +1,7 @@
 """The landmark map a user writes for their room (contract in docs/frames.md and docs/landmarks.md).
 
 Shared by the simulator (which draws the landmarks) and the localization (which uses them).
-A colour landmark is a disc whose centroid is the point; an ArUco landmark is a vertical square
+A colour landmark is a ball (of ``diameter``) whose centre is the point; an ArUco landmark is a vertical square
 marker of side ``size`` whose outward normal points along ``yaw``. Its corners are ordered as
 ``cv2.aruco`` reports them: top-left, top-right, bottom-right, bottom-left, seen from the front::
 
@@ -37,7 +37,7 @@ class Landmark:
     kind: Literal["color", "aruco"]
     position: Tuple[float, float, float] = field(metadata=bounds(-100.0, 100.0))
     color: Optional[str] = None  # colour class (perception config), for kind 'color'
-    diameter: float = field(default=0.08, metadata=bounds(0.005, 2.0))  # colour disc, m
+    diameter: float = field(default=0.08, metadata=bounds(0.005, 2.0))  # colour ball, m
     dictionary: Optional[Literal[ARUCO_DICTIONARIES]] = None  # type: ignore[valid-type]
     size: Optional[float] = field(default=None, metadata=bounds(0.01, 2.0))  # ArUco black square side, m
     yaw: float = field(default=0.0, metadata=bounds(-2 * math.pi, 2 * math.pi))  # ArUco normal, rad
