@@ -24,6 +24,11 @@ Landmark points (image u_i <-> world X_i):
   fused only within the jump gate: found where the prior put it, it never re-localizes, nor counts
   for the prior against fixes that would (in a replayed stress mission, two tracked centres fitted
   exactly, 0.15 px assumed, re-localized a pose 6 mm off to 34 cm off).
+  Markers a frame shows that the map does not hold are counted for the failure reasons
+  (``LandmarkDetector.diagnosis``): ids of the map's dictionaries as they are detected, and, every
+  ``FOREIGN_EVERY``-th frame that shows none of the map's markers, markers of the other dictionaries.
+  A map with wrong ids or the wrong dictionary then says so, where "landmarks detected in 0 frames"
+  left a user looking at markers in plain view.
 * Colour markers: the centres of the balls of each colour class: found at half resolution, each
   ball's lit cap with its shaded side (the same hue and saturation, darker), the centroid of its
   outline at full resolution (``_balls``, ``_ball_centre``; balls touching the border are dropped,
@@ -294,10 +299,11 @@ for the direction with the smallest predicted position std.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import math
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -323,7 +329,7 @@ from nao_core.geometry import (
     rot_z,
     wrap_angle,
 )
-from nao_core.landmark_map import Landmark, LandmarkMap
+from nao_core.landmark_map import ARUCO_DICTIONARIES, Landmark, LandmarkMap
 
 
 @dataclass(frozen=True)
@@ -776,6 +782,10 @@ def check_ball_colours(landmark_map: LandmarkMap, perception: PerceptionParams) 
                              "its ball would be taken for the object; use another colour")
 
 
+FOREIGN_EVERY = 10  # frames without a map marker between looks for markers of other dictionaries (``look_for_unmapped``)
+UNMAPPED_FRAMES = 3  # frames a marker the map does not hold is seen in before a failure's reason names it
+
+
 class LandmarkDetector:
     """Image points of the map's landmarks in one frame: ArUco corners and colour blobs."""
 
@@ -795,6 +805,11 @@ class LandmarkDetector:
         detector_params.errorCorrectionRate = params.aruco_error_correction
         self.detector_params = detector_params
         self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
+        # markers the map does not hold, for the failure reasons: (dictionary, id) -> frames it was seen in
+        self.unmapped: collections.Counter = collections.Counter()
+        self._foreign = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+                         for name in ARUCO_DICTIONARIES if name not in self.aruco} if self.aruco else {}
+        self._frames_without_markers = 0
         self._textures: Dict[Tuple[str, int], Tuple[np.ndarray, np.ndarray]] = {}  # tracking templates, made when first needed
         self.colors: Dict[str, List[Landmark]] = {}
         if perception is not None:
@@ -807,15 +822,45 @@ class LandmarkDetector:
             color = perception.colors[name]
             self.shaded[name] = replace(color, value=(int(color.value[0] * params.ball_shade_floor), color.value[1]))
 
-    def _detect(self, image: np.ndarray, min_side: float) -> List[Tuple[str, int, np.ndarray]]:
+    def _detect(self, image: np.ndarray, min_side: float, unmapped: Optional[set] = None,
+                dictionaries: Optional[Dict[str, Any]] = None) -> List[Tuple[str, int, np.ndarray]]:
+        """(dictionary, id, corners 4 x 2) of the map's markers found in ``image``; the (dictionary, id) of the
+        others go to ``unmapped``. ``dictionaries``: search these instead (default the map's)."""
         found = []
         self.detector_params.minMarkerPerimeterRate = max(1e-3, min(1.0, 4.0 * min_side / max(image.shape[:2])))
-        for name, dictionary in self.dictionaries.items():
+        for name, dictionary in (self.dictionaries if dictionaries is None else dictionaries).items():
             corners, ids, _ = cv2.aruco.ArucoDetector(dictionary, self.detector_params).detectMarkers(image)
             for c, marker_id in zip(corners, () if ids is None else ids.ravel()):
-                if int(marker_id) in self.aruco[name]:
+                if int(marker_id) in self.aruco.get(name, ()):
                     found.append((name, int(marker_id), c.reshape(4, 2)))
+                elif unmapped is not None:
+                    unmapped.add((name, int(marker_id)))
         return found
+
+    def look_for_unmapped(self, gray: np.ndarray, found: int) -> None:
+        """Count the markers a frame shows that the map does not hold (``unmapped``): ids of its dictionaries
+        (counted by ``aruco_points``) and, every ``FOREIGN_EVERY``-th frame of a map with markers that found
+        none of them (``found``), markers of the other dictionaries, at full size (far wall markers vanish
+        reduced; 3-5 ms a dictionary at VGA)."""
+        self._frames_without_markers = 0 if found else self._frames_without_markers + 1
+        if not self._foreign or self._frames_without_markers % FOREIGN_EVERY != 1:
+            return
+        seen: set = set()
+        self._detect(gray, self.params.aruco_min_side_px, seen, self._foreign)
+        self.unmapped.update(seen)
+
+    def diagnosis(self, min_frames: int = UNMAPPED_FRAMES) -> str:
+        """What the frames showed that the map does not hold, for a failure's reason ("" when nothing was
+        seen in ``min_frames`` searches or more): the dictionaries and ids of those markers."""
+        seen: Dict[str, List[int]] = {}
+        for (name, marker_id), frames in sorted(self.unmapped.items()):
+            if frames >= min_frames:
+                seen.setdefault(name, []).append(marker_id)
+        if not seen:
+            return ""
+        listed = "; ".join(f"{name} ids {', '.join(map(str, ids[:8]))}{', ...' if len(ids) > 8 else ''}" for name, ids in seen.items())
+        return (f"ArUco markers the map does not hold were seen ({listed}; the map's: "
+                f"{', '.join(sorted(self.aruco)) or 'none'}): check its ids and dictionary (docs/landmarks.md)")
 
     def aruco_points(self, gray: np.ndarray, boxes: Optional[List[Box]] = None) -> _Points:
         """Map markers found in a grey image (their corners, refined on the full image).
@@ -829,6 +874,7 @@ class LandmarkDetector:
         frame_factor = max(1, -(-gray.shape[1] // self.params.aruco_detection_width))
         min_side = self.params.aruco_min_side_px
         found: Dict[Tuple[str, int], Tuple[np.ndarray, int]] = {}
+        unmapped: set = set()
 
         def search(x0: int, y0: int, x1: int, y1: int, factor: int) -> None:
             roi = gray[y0:y1, x0:x1]
@@ -836,7 +882,7 @@ class LandmarkDetector:
                 roi = cv2.resize(roi, (max(1, roi.shape[1] // factor), max(1, roi.shape[0] // factor)), interpolation=cv2.INTER_AREA)
             if min(roi.shape[:2]) < 8:
                 return
-            for name, marker_id, c in self._detect(roi, min_side):
+            for name, marker_id, c in self._detect(roi, min_side, unmapped):
                 key = (name, marker_id)
                 if key not in found or found[key][1] > factor:
                     found[key] = ((c + 0.5) * factor - 0.5 + (x0, y0), factor)
@@ -852,6 +898,7 @@ class LandmarkDetector:
                 search(x0, y0, x1, y1, factor)
                 if factor > 1 and len(found) - before < predicted:
                     search(x0, y0, x1, y1, 1)
+        self.unmapped.update(unmapped)
         points = _Points.empty()
         for (name, marker_id), (corners, factor) in found.items():
             corners = subpix_corners(gray, corners, factor)
@@ -1328,6 +1375,7 @@ class RobotLocalizer:
             markers = self.detector.aruco_points(gray, self.detector.predicted_boxes(self.camera, T_WC))
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
+        self.detector.look_for_unmapped(gray, len(markers))
         tracked = _Points.empty()
         if prior_p is not None:  # the markers the smear hid from the detector
             tracked = self.detector.tracked_points(gray, self.camera, T_WC, markers.ids, rate, self.params.exposure)

@@ -12,7 +12,8 @@ Phases and transitions (t is the caller's clock, s; the first ``tick`` starts th
     LOCALIZE --a landmark fix--> ACTIVE   (the robot stands; the object is tracked in the odometry
             frame and the caller's head alternates between it and the landmarks)
     INIT, SEARCH, LOCALIZE --no landmark fix for no_fix_timeout s since the start--> STOPPING
-            (outcome 'landmarks_lost', the reason says how many landmarks frames showed)
+            (outcome 'landmarks_lost', the reason says how many landmarks frames showed, and
+            ``landmark_note``: markers seen that the map does not hold)
     ACTIVE  --on_goal (coverage and uncertainty reached)--> DONE (outcome 'completed')
     any of INIT, SEARCH, ACTIVE --t - t_start >= max_duration--> DONE (outcome 'time_limit')
     DONE    --next tick--> STOPPING
@@ -170,6 +171,7 @@ class Mission:
         self._t_turn: Optional[float] = None  # when the scan ended and the turn in place began
         self.landmark_frames = 0  # frames in which landmarks were detected (fix or not)
         self.flooded_frames = 0  # frames the object's colour filled from side to side (not a sighting)
+        self.landmark_note = ""  # what the frames showed that the map does not hold (the caller's), for 'landmarks_lost'
         self.frame_failures = 0  # frames in a row a per-frame step failed on
 
     # events -----------------------------------------------------------------------------------
@@ -253,8 +255,8 @@ class Mission:
         if self.phase in (Phase.INIT, Phase.SEARCH, Phase.LOCALIZE) and self._t_fix is None \
                 and t - self._t_start >= p.no_fix_timeout:
             seen = "the object seen" if self._t_object is not None else "the object not seen"
-            self._end(t, Outcome.LANDMARKS_LOST,
-                      f"no landmark fix in {p.no_fix_timeout:g} s: landmarks detected in {self.landmark_frames} frames, {seen}")
+            self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix in {p.no_fix_timeout:g} s: landmarks detected in "
+                                                 f"{self.landmark_frames} frames, {seen}" + self._landmark_note())
         silent = t - (self._t_start if self._t_frame is None else self._t_frame)
         if self.phase in (Phase.INIT, Phase.SEARCH, Phase.LOCALIZE, Phase.ACTIVE) and silent >= p.frame_stall:
             if silent < p.frame_timeout:
@@ -281,10 +283,11 @@ class Mission:
             if self._t_object is None or self._lost(t):
                 self._end(t, Outcome.OBJECT_LOST, self._lost_reason(t) + self._flood_note())
             elif self._t_fix is None or t - self._t_fix > p.landmarks_lost_timeout:
-                self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s")
+                self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s" + self._landmark_note())
             elif self._position_std > p.landmarks_lost_std:
                 self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {t - self._t_fix:.1f} s: the pose's std "
-                                                     f"{100 * self._position_std:.1f} cm passed {100 * p.landmarks_lost_std:g} cm")
+                                                     f"{100 * self._position_std:.1f} cm passed {100 * p.landmarks_lost_std:g} cm"
+                                                     + self._landmark_note())
             else:
                 return Decision(self.phase)
         if self.phase is Phase.DONE:
@@ -317,6 +320,9 @@ class Mission:
         return Decision(self.phase, walk=(0.0, 0.0, p.search_turn_rate), head=(0.0, p.init_pitch))
 
     # helpers ----------------------------------------------------------------------------------
+
+    def _landmark_note(self) -> str:
+        return f"; {self.landmark_note}" if self.landmark_note else ""
 
     def _flood_note(self) -> str:
         if not self.flooded_frames:

@@ -120,8 +120,9 @@ def robot_checks(config: StationConfig, info, frames: list, states: List[State],
                                    config.perception)
         T_BC = np.asarray(frames[-1][1].meta.T_BC, dtype=float).reshape(4, 4)
         fix = localizer.measure(image, T_BC)
+        unmapped = localizer.detector.diagnosis(min_frames=1)  # the markers in view that the map does not hold
         detail = (f"landmarks {', '.join(map(str, fix.landmark_ids))} give a pose fix ({fix.rms_px:.1f} px)" if fix
-                  else f"no pose fix ({localizer.no_fix_reason or 'no landmark seen'})")
+                  else f"no pose fix ({localizer.no_fix_reason or 'no landmark seen'})" + (f"; {unmapped}" if unmapped else ""))
         checks.append(Check("landmarks visible", fix is not None, detail,
                             f"turn the robot towards the landmarks of {config.station.landmark_map}, or fix the map (docs/frames.md)"))
     return checks

@@ -490,6 +490,7 @@ class Pilot:
                 self.coverage.add(np.asarray(cam))
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
+        self.mission.landmark_note = self.localizer.detector.diagnosis()
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
                               self.localizer.position_std() if self.anchored else 0.0, flooded, self._object_expected(cam))
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from hypothesis import strategies as st
 from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
 from agent.localization import (
+    FOREIGN_EVERY,
     LocalizationParams,
     PlanarModel,
     PoseFix,
@@ -880,6 +882,34 @@ def test_small_far_markers_are_found_at_full_resolution(params, perception, robo
     assert len(sides) >= 3 and sides.max() < 2 * params.aruco_min_side_px  # small ones, lost when halved
     fix = localizer.measure(frame.image, frame.T_BC)
     assert fix is not None and pose_error(fix.pose, world.truth()["robot_pose"])[0] < MAX_FIX_ERROR
+
+
+@pytest.mark.parametrize("wrong", ["ids", "dictionary"])
+def test_markers_the_map_does_not_hold_are_named_for_the_failure_reason(params, perception, robot, tmp_path, wrong):
+    """The wall room's markers (DICT_4X4_50, ids 0-35) under a map that gives them other ids (50-85, of
+    DICT_4X4_100, which holds DICT_4X4_50's codes as its first 50) or another dictionary (DICT_6X6_250):
+    no fix, and ``LandmarkDetector.diagnosis`` names the dictionary and ids seen, and the map's."""
+    text = (CONFIG_DIR / "landmarks" / "walls.yaml").read_text()
+    if wrong == "ids":
+        text = re.sub(r"\{id: (\d+), kind: aruco, dictionary: DICT_4X4_50",
+                      lambda m: f"{{id: {int(m.group(1)) + 50}, kind: aruco, dictionary: DICT_4X4_100", text)
+    else:
+        text = text.replace("DICT_4X4_50", "DICT_6X6_250")
+    path = tmp_path / "wrong.yaml"
+    path.write_text(text)
+    world = SimWorld("can", robot, "vga", seed=3, config=load_sim_config().with_layout("landmarks/walls.yaml", 2.0))
+    localizer = RobotLocalizer(params, load_landmark_map(path), camera_of(robot, "vga"), perception)
+    assert localizer.detector.diagnosis() == ""
+    rng = np.random.default_rng(3)
+    for _ in range(2 * FOREIGN_EVERY + 1):  # the other dictionaries are searched every FOREIGN_EVERY-th frame without a map marker
+        world.teleport((rng.uniform(-0.8, -0.2), rng.uniform(-0.3, 0.3), rng.normal(0.0, 0.1)), (0.0, 0.0))  # facing the wall x = +2
+        frame = world.render()
+        assert localizer.measure(frame.image, frame.T_BC) is None
+    said = localizer.detector.diagnosis()
+    seen = re.search(r"DICT_4X4_%s ids ([\d, .]+)" % ("100" if wrong == "ids" else "50"), said)  # the prints' dictionary and ids
+    assert said.startswith("ArUco markers the map does not hold were seen") and seen, said
+    assert 0 < len(re.findall(r"\d+", seen.group(1))) and {int(i) for i in re.findall(r"\d+", seen.group(1))} <= set(range(36))
+    assert ("the map's: DICT_4X4_100" if wrong == "ids" else "the map's: DICT_6X6_250") in said
 
 
 def test_predicted_fix_and_best_landmark_view(params, perception, robot, tmp_path):

@@ -225,6 +225,22 @@ def test_no_fix_at_all_ends_as_landmarks_lost_and_says_so(object_seen):
     assert ("the object seen" if object_seen else "the object not seen") in mission.reason
 
 
+def test_landmarks_lost_names_the_markers_the_map_does_not_hold():
+    """The caller's ``landmark_note`` (the detector's markers seen that the map does not hold) ends every
+    'landmarks_lost' reason: before the first fix, and after the timeout in ACTIVE."""
+    note = "ArUco markers the map does not hold were seen (DICT_4X4_50 ids 3, 7; the map's: DICT_6X6_250)"
+    mission = Mission(dataclasses.replace(P, object_lost_timeout=1000.0, search_max_turns=100.0))
+    mission.landmark_note = note
+    run_until(mission, 0.0, P.no_fix_timeout + 0.2, on_tick=lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False,
+                                                                                     localized=False))
+    assert mission.outcome is Outcome.LANDMARKS_LOST and mission.reason.endswith("; " + note)
+    mission, t = active_mission()
+    mission.landmark_note = note
+    run_until(mission, 0.3, 0.2 + P.landmarks_lost_timeout + 0.3,
+              on_tick=lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False, localized=True))
+    assert mission.outcome is Outcome.LANDMARKS_LOST and mission.reason == f"no landmark fix for {P.landmarks_lost_timeout:g} s; {note}"
+
+
 def test_object_not_found_says_what_localization_saw():
     mission = searching_mission()
     for k in range(3):
