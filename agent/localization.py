@@ -251,8 +251,8 @@ mapped place only as much as the map is worth; H, the residuals the gates and th
 smear's and the intrinsics' columns are all the whitened ones, and predicted fixes are likewise. Told
 the map's sigmas, the fixes are better and honest (tests/test_localization.py's Monte Carlo, 5 mm and
 1 deg: median error 16.5 -> 6.6 mm, NEES 170 -> 2.8, every frame a fix). The map file says how well it
-is measured (unsaid: a tape's 5 mm and 1 deg, nao_core/landmark_map.py); a simulated room's says 0:
-exact, A = I.
+is measured; a simulated room's says 0 (exact, A = I), and a file that does not say is held exact with a
+warning (nao_core/landmark_map.py: taken as a tape's instead, a one-wall room lost its first fix).
 
 Smear. A camera turning at omega (rad/s, its optical frame) during an exposure T smears the image
 by s = T (-f_x omega_y, f_y omega_x) px, the rotation flow at the principal point

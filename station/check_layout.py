@@ -219,12 +219,11 @@ def map_precision(landmarks: LandmarkMap, unstated: Tuple[str, ...] = ()) -> str
     """The line that says how well the map says it is measured (docs/landmarks.md, "Writing the map"); ``unstated``:
     the precision keys the file left out (``unstated_precision``)."""
     if landmarks.position_sigma == 0.0 and landmarks.yaw_sigma == 0.0:
-        return ("map precision: exact (position_sigma and yaw_sigma 0): a map measured with a tape is a few mm off, "
+        said = f"not stated ({' and '.join(unstated)}): held exact" if unstated else "exact (position_sigma and yaw_sigma 0)"
+        return (f"map precision: {said}: a map measured with a tape is a few mm off, "
                 "which costs several times that in every fix unless the map says so (docs/landmarks.md)")
-    told = (f" (the file does not state {' or '.join(unstated)}: a tape's taken; write what you measured)" if unstated
-            else "")
     return (f"map precision: {1e3 * landmarks.position_sigma:g} mm per axis, {math.degrees(landmarks.yaw_sigma):g} deg "
-            f"of facing{told} (the predicted precision holds it)")
+            "of facing (the predicted precision holds it)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -79,7 +79,7 @@ def test_prediction_agrees_with_the_localizer_and_gaps_wrap_around():
 def test_the_map_s_stated_precision_is_printed_and_widens_the_prediction(tmp_path, capsys):
     """A map that states 0 is called exact, with the warning; one that states 1 cm says so, and its
     predicted fix stds along the orbit are wider than the exact map's (agent/localization.py, Map
-    error); one that states nothing is a tape's, 5 mm and 1 deg, and says it was not stated."""
+    error); one that states nothing is held exact, and says it was not stated."""
     exact = CONFIG_DIR / "landmarks" / "walls.yaml"
     measured, silent = tmp_path / "measured.yaml", tmp_path / "silent.yaml"
     text = exact.read_text()
@@ -88,8 +88,7 @@ def test_the_map_s_stated_precision_is_printed_and_widens_the_prediction(tmp_pat
     silent.write_text(text.replace("position_sigma: 0.0\n", "").replace("yaw_sigma: 0.0\n", ""))
     stds = []
     for path, said in ((exact, "map precision: exact"), (measured, "map precision: 10 mm per axis"),
-                       (silent, "map precision: 5 mm per axis, 1 deg of facing (the file does not state position_sigma or "
-                                "yaw_sigma: a tape's taken")):
+                       (silent, "map precision: not stated (position_sigma and yaw_sigma): held exact")):
         main(["--landmarks", str(path), "--object", "0,0", "--distances", "0.8", "--step", "45", "-o", str(tmp_path / "l.png")])
         assert said in capsys.readouterr().out
     config = load_station_config()

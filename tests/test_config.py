@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import typing
 from pathlib import Path
 
@@ -88,20 +87,25 @@ def test_landmark_map_rules(tmp_path):
         load_landmark_map(empty)
 
 
-def test_a_map_that_does_not_say_how_well_it_is_measured_is_taken_as_a_tape_s(tmp_path, caplog):
-    """Unstated, ``position_sigma`` and ``yaw_sigma`` are 5 mm and 1 deg (nao_core/landmark_map.py), with a warning
-    naming the file; stated (0 too: the shipped simulated rooms), they are the file's."""
+def test_a_map_that_does_not_say_how_well_it_is_measured_is_held_exact_with_a_warning(tmp_path, caplog):
+    """Unstated, ``position_sigma`` and ``yaw_sigma`` are 0 and the loader warns, naming the file and the keys;
+    stated, they are the file's (the shipped simulated rooms state 0, without a warning)."""
     row = "landmarks:\n  - {id: g, kind: color, color: green, position: [0, 2, 0.3], diameter: 0.1}\n"
     silent = write(tmp_path, row)
     with caplog.at_level(logging.WARNING):
-        assert (load_landmark_map(silent).position_sigma, load_landmark_map(silent).yaw_sigma) == (0.005, pytest.approx(math.radians(1.0)))
-    assert str(silent) in caplog.text and "does not say how well it is measured" in caplog.text
+        assert (load_landmark_map(silent).position_sigma, load_landmark_map(silent).yaw_sigma) == (0.0, 0.0)
+    assert str(silent) in caplog.text and "does not say how well it is measured (position_sigma, yaw_sigma): held exact" in caplog.text
     half = tmp_path / "half.yaml"
     half.write_text(row + "position_sigma: 0.002\n")
-    assert (load_landmark_map(half).position_sigma, load_landmark_map(half).yaw_sigma) == (0.002, pytest.approx(math.radians(1.0)))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert (load_landmark_map(half).position_sigma, load_landmark_map(half).yaw_sigma) == (0.002, 0.0)
+    assert "(yaw_sigma): held exact" in caplog.text
     for name in ("sim_room", "walls", "colours", "mixed", "sparse", "small_room"):  # simulated: exact, and said
-        shipped = load_landmark_map(CONFIG_DIR / "landmarks" / f"{name}.yaml")
-        assert (shipped.position_sigma, shipped.yaw_sigma) == (0.0, 0.0)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            shipped = load_landmark_map(CONFIG_DIR / "landmarks" / f"{name}.yaml")
+        assert (shipped.position_sigma, shipped.yaw_sigma) == (0.0, 0.0) and "does not say" not in caplog.text
 
 
 def _defaulted_fields(cls: type, path: str, seen: set) -> list:
