@@ -852,8 +852,8 @@ class LandmarkDetector:
     def diagnosis(self, min_frames: int = UNMAPPED_FRAMES) -> str:
         """What the frames showed that the map does not hold, for a failure's reason ("" when nothing was
         seen in ``min_frames`` searches or more): the dictionaries and ids of those markers."""
-        seen: Dict[str, List[int]] = {}
-        for (name, marker_id), frames in sorted(self.unmapped.items()):
+        seen: Dict[str, List[int]] = {}  # the map's dictionaries first: their ids are the likelier mistake
+        for (name, marker_id), frames in sorted(self.unmapped.items(), key=lambda item: (item[0][0] not in self.aruco, item[0])):
             if frames >= min_frames:
                 seen.setdefault(name, []).append(marker_id)
         if not seen:

@@ -395,6 +395,29 @@ def test_failure_mid_mission_stops_robot_and_says_why(sim_bridge, tmp_path, even
         assert result["reason"] == f"interrupted by {event}"
 
 
+def test_a_map_with_the_wrong_ids_ends_landmarks_lost_naming_the_markers_seen(sim_bridge, tmp_path):
+    """The simulated room's boards (DICT_4X4_50, ids 0-23) under a map that numbers them 24-47 (and has no
+    balls): no fix, the mission ends 'landmarks_lost' after ``no_fix_timeout``, and its reason names the
+    markers seen that the map does not hold (agent/localization.py ``LandmarkDetector.diagnosis``)."""
+    bridge, port = sim_bridge
+    rows = [line for line in (CONFIG_DIR / "landmarks" / "sim_room.yaml").read_text().splitlines() if "kind: aruco" in line]
+    assert len(rows) == 24 and all("dictionary: DICT_4X4_50" in row for row in rows)
+    shifted = [row.replace(f"{{id: {k}, ", f"{{id: {k + 24}, ", 1) for k, row in enumerate(rows)]
+    assert all(f"{{id: {k + 24}, " in row for k, row in enumerate(shifted))
+    (tmp_path / "wrong.yaml").write_text("landmarks:\n" + "\n".join(shifted) + "\nposition_sigma: 0.0\nyaw_sigma: 0.0\n")
+    override = write_override(tmp_path / "station.yaml", port, standstill=False, no_fix_timeout=8.0)
+    override.write_text(override.read_text().replace("station:\n", f"station:\n  landmark_map: {tmp_path / 'wrong.yaml'}\n", 1))
+    proc = station("start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"), "--config", str(override), stderr=tmp_path / "err")
+    try:
+        result = finish(tmp_path, proc, "landmarks_lost")
+    finally:
+        proc.kill()
+    assert result["reason"].startswith("no landmark fix in 8 s")
+    assert "ArUco markers the map does not hold were seen (DICT_4X4_50 ids " in result["reason"], result["reason"]
+    seen = result["reason"].split("DICT_4X4_50 ids ", 1)[1].split(";", 1)[0]
+    assert {int(i) for i in seen.replace(", ...", "").split(", ")} <= set(range(24))
+
+
 @SLOW
 def test_object_never_seen_is_object_not_found(sim_bridge, tmp_path):
     bridge, port = sim_bridge
