@@ -1437,7 +1437,7 @@ class RobotLocalizer:
                 reasons.append(f"colour markers ({n_blobs} blobs): {reason}")
         if fit is None:
             if not len(markers) and not reasons:
-                raise NoFix("no landmark in view")
+                raise NoFix("none of the map's landmarks in view")
             raise NoFix("; ".join(reasons))
         points, p, rms, H = fit
         if not rms <= self.params.max_reprojection_px:  # a NaN fails too

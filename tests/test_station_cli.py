@@ -13,6 +13,7 @@ from typing import Tuple
 
 import pytest
 
+from nao_core.config import CONFIG_DIR
 from nao_core.robot_model import load_robot_model
 from station.config import load_station_config
 
@@ -183,6 +184,23 @@ def test_doctor_on_the_simulated_nao(tmp_path):
         assert lines.get(name) == "PASS", result.stdout
     assert "landmarks" in lines and "Traceback" not in result.stderr
     assert result.returncode == (0 if lines["landmarks"] == "PASS" else 1)
+
+
+def test_doctor_names_the_markers_in_view_that_the_map_does_not_hold(tmp_path):
+    """The simulated NAO starts with boards 18-22 of its room in view (the map's own gives a fix there); a map
+    numbering the room's 24 boards 24-47 fails the landmark line, which names the ids seen (all of 0-23) and the
+    map's dictionary (agent/localization.py ``LandmarkDetector.diagnosis``)."""
+    rows = [line for line in (CONFIG_DIR / "landmarks" / "sim_room.yaml").read_text().splitlines() if "kind: aruco" in line]
+    shifted = [row.replace(f"{{id: {k}, ", f"{{id: {k + 24}, ", 1) for k, row in enumerate(rows)]
+    (tmp_path / "wrong.yaml").write_text("landmarks:\n" + "\n".join(shifted) + "\nposition_sigma: 0.0\nyaw_sigma: 0.0\n")
+    (tmp_path / "doctor.yaml").write_text(f"station:\n  landmark_map: {tmp_path / 'wrong.yaml'}\n")
+    result = subprocess.run([sys.executable, "-m", "station.cli", "doctor", "--robot", "sim", "--seconds", "2", "--config",
+                             str(tmp_path / "doctor.yaml")], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    line = next(line for line in result.stdout.splitlines() if "landmarks visible" in line)
+    assert line.startswith("FAIL") and result.returncode == 1, result.stdout
+    assert "ArUco markers the map does not hold were seen (DICT_4X4_50 ids " in line and "the map's: DICT_4X4_50" in line, line
+    ids = line.split("DICT_4X4_50 ids ", 1)[1].split(";", 1)[0].replace(", ...", "").split(", ")
+    assert ids and {int(i) for i in ids} <= set(range(24))
 
 
 def test_capture_from_the_simulated_nao(tmp_path):
