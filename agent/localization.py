@@ -805,7 +805,7 @@ class LandmarkDetector:
         detector_params.errorCorrectionRate = params.aruco_error_correction
         self.detector_params = detector_params
         self.dictionaries = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)) for name in self.aruco}
-        # markers the map does not hold, for the failure reasons: (dictionary, id) -> frames it was seen in
+        # markers the map does not hold, for the failure reasons: (dictionary, id) -> searches that found it
         self.unmapped: collections.Counter = collections.Counter()
         self._foreign = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
                          for name in ARUCO_DICTIONARIES if name not in self.aruco} if self.aruco else {}

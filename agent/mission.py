@@ -52,7 +52,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 from nao_core.config import bounds
 from nao_core.robot_model import head_at
@@ -171,7 +171,8 @@ class Mission:
         self._t_turn: Optional[float] = None  # when the scan ended and the turn in place began
         self.landmark_frames = 0  # frames in which landmarks were detected (fix or not)
         self.flooded_frames = 0  # frames the object's colour filled from side to side (not a sighting)
-        self.landmark_note = ""  # what the frames showed that the map does not hold (the caller's), for 'landmarks_lost'
+        # the caller's account of what the frames showed that the map does not hold, read when 'landmarks_lost' is said
+        self.landmark_note: Callable[[], str] = str
         self.frame_failures = 0  # frames in a row a per-frame step failed on
 
     # events -----------------------------------------------------------------------------------
@@ -322,7 +323,8 @@ class Mission:
     # helpers ----------------------------------------------------------------------------------
 
     def _landmark_note(self) -> str:
-        return f"; {self.landmark_note}" if self.landmark_note else ""
+        note = self.landmark_note()
+        return f"; {note}" if note else ""
 
     def _flood_note(self) -> str:
         if not self.flooded_frames:

@@ -19,7 +19,7 @@ from typing import Literal, Optional, Tuple, Union
 
 import numpy as np
 
-from nao_core.config import ConfigError, bounds, load, read_yaml
+from nao_core.config import ConfigError, bounds, from_mapping, read_yaml
 
 log = logging.getLogger(__name__)
 
@@ -86,21 +86,21 @@ class LandmarkMap:
 
 
 def load_landmark_map(path: Union[str, Path]) -> LandmarkMap:
-    """Load and validate a landmark map YAML (top-level key ``landmarks``); a map without one is refused:
-    the robot localizes by nothing else. A precision the file does not state (``position_sigma``,
-    ``yaw_sigma``) is 0, exact, with a warning: only a simulated room's map is, and it says so."""
-    landmark_map = load(LandmarkMap, [path])
+    """Load and validate a landmark map YAML (``read_landmark_map``'s map)."""
+    return read_landmark_map(path)[0]
+
+
+def read_landmark_map(path: Union[str, Path]) -> Tuple[LandmarkMap, Tuple[str, ...]]:
+    """The map of a landmark file (top-level key ``landmarks``; a map without one is refused: the robot
+    localizes by nothing else) and the ``PRECISION_KEYS`` it does not state. Those are 0, exact, with a
+    warning: only a simulated room's map is, and it says so."""
+    data = read_yaml(Path(path))  # the file read once: the map, and what it states
+    landmark_map = from_mapping(LandmarkMap, data, str(path))
     if not landmark_map.landmarks:
         raise ConfigError(f"{path}: the map has no landmarks: the robot cannot localize (docs/landmarks.md)")
-    unstated = unstated_precision(path)
+    unstated = tuple(key for key in PRECISION_KEYS if key not in data)
     if unstated:
         log.warning("%s does not say how well it is measured (%s): held exact; a map measured with a tape is a few mm "
                     "off, which costs several times that in every fix unless it says so (docs/landmarks.md, "
                     "\"Writing the map\")", path, ", ".join(unstated))
-    return landmark_map
-
-
-def unstated_precision(path: Union[str, Path]) -> Tuple[str, ...]:
-    """The ``PRECISION_KEYS`` a (valid) map file leaves out."""
-    stated = read_yaml(Path(path))
-    return tuple(key for key in PRECISION_KEYS if key not in stated)
+    return landmark_map, unstated

@@ -41,7 +41,7 @@ from agent.localization import RobotLocalizer, head_directions
 from agent.planner import Planner
 from nao_core.config import ConfigError
 from nao_core.geometry import wrap_angle
-from nao_core.landmark_map import LandmarkMap, load_landmark_map, unstated_precision
+from nao_core.landmark_map import LandmarkMap, read_landmark_map
 from nao_core.robot_model import RobotModel, load_robot_model
 from station.config import load_station_config
 
@@ -217,7 +217,7 @@ def draw(path: Path, landmarks: LandmarkMap, obj: Tuple[float, float], points: S
 
 def map_precision(landmarks: LandmarkMap, unstated: Tuple[str, ...] = ()) -> str:
     """The line that says how well the map says it is measured (docs/landmarks.md, "Writing the map"); ``unstated``:
-    the precision keys the file left out (``unstated_precision``)."""
+    the precision keys the file left out (``read_landmark_map``)."""
     if landmarks.position_sigma == 0.0 and landmarks.yaw_sigma == 0.0:
         said = f"not stated ({' and '.join(unstated)}): held exact" if unstated else "exact (position_sigma and yaw_sigma 0)"
         return (f"map precision: {said}: a map measured with a tape is a few mm off, "
@@ -229,7 +229,7 @@ def map_precision(landmarks: LandmarkMap, unstated: Tuple[str, ...] = ()) -> str
 def run(args: argparse.Namespace) -> int:
     """``station check-layout``: the summary on stdout, the PNG, and the exit code of the module docstring."""
     try:
-        landmarks = load_landmark_map(args.landmarks)
+        landmarks, unstated = read_landmark_map(args.landmarks)
         config = load_station_config(args.config)
         robot = load_robot_model(config.robot_overrides)
         resolution = args.resolution or config.station.resolution
@@ -244,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
     limit = config.localization.max_position_std
     print(f"{args.landmarks}: {len(landmarks.landmarks)} landmarks, object at ({args.object[0]:.2f}, {args.object[1]:.2f}) m, "
           f"camera {resolution}, fix gate {100 * limit:.1f} cm")
-    print(map_precision(landmarks, unstated_precision(args.landmarks)))
+    print(map_precision(landmarks, unstated))
     for line in summarize(points, limit, args.step):
         print(line)
     keep_in, x = KeepIn(landmarks), np.array([*args.object, args.radius])

@@ -284,6 +284,7 @@ class Pilot:
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
+        self.mission.landmark_note = self.localizer.detector.diagnosis  # read only when a reason needs it
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
         self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]),
                                                      config.localization.aruco_min_side_px)  # the planner's c_m
@@ -490,7 +491,6 @@ class Pilot:
                 self.coverage.add(np.asarray(cam))
                 if self.ekf.initialized:
                     step.outputs.append(CoverageRecord(t, self.coverage.fraction(self.ekf.x)))
-        self.mission.landmark_note = self.localizer.detector.diagnosis()
         self.mission.on_frame(t, measurement is not None, fix is not None, self.anchored, self.localizer.landmarks_seen > 0,
                               self.localizer.position_std() if self.anchored else 0.0, flooded, self._object_expected(cam))
 

@@ -230,12 +230,12 @@ def test_landmarks_lost_names_the_markers_the_map_does_not_hold():
     'landmarks_lost' reason: before the first fix, and after the timeout in ACTIVE."""
     note = "ArUco markers the map does not hold were seen (DICT_4X4_50 ids 3, 7; the map's: DICT_6X6_250)"
     mission = Mission(dataclasses.replace(P, object_lost_timeout=1000.0, search_max_turns=100.0))
-    mission.landmark_note = note
+    mission.landmark_note = lambda: note
     run_until(mission, 0.0, P.no_fix_timeout + 0.2, on_tick=lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False,
                                                                                      localized=False))
     assert mission.outcome is Outcome.LANDMARKS_LOST and mission.reason.endswith("; " + note)
     mission, t = active_mission()
-    mission.landmark_note = note
+    mission.landmark_note = lambda: note
     run_until(mission, 0.3, 0.2 + P.landmarks_lost_timeout + 0.3,
               on_tick=lambda m, t: m.on_frame(t, object_seen=True, landmark_fix=False, localized=True))
     assert mission.outcome is Outcome.LANDMARKS_LOST and mission.reason == f"no landmark fix for {P.landmarks_lost_timeout:g} s; {note}"
