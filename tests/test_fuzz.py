@@ -61,7 +61,8 @@ from tests.zenoh_peers import bridge_on_standin, free_port, wait_until
 
 CI_EXAMPLES = int(os.environ.get("FUZZ_CI_EXAMPLES", "300"))
 LONG_EXAMPLES = int(os.environ.get("FUZZ_LONG_EXAMPLES", "20000"))
-SCRATCH = Path(tempfile.mkdtemp(prefix="fuzz-"))  # one file per target, rewritten per example
+_SCRATCH_DIR = tempfile.TemporaryDirectory(prefix="fuzz-")  # removed when the test process ends
+SCRATCH = Path(_SCRATCH_DIR.name)  # one file per target, rewritten per example
 
 # -- hostile values ---------------------------------------------------------------------------------
 
