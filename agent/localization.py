@@ -404,6 +404,7 @@ class PoseFix:
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
+    inlier_ids: Tuple[object, ...] = ()  # the landmark id of each inlier point
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with (corrected by the camera tilt learnt then)
     T_BC_reported: Optional[np.ndarray] = None  # the same as reported, before that correction (None: T_BC is)
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
@@ -1474,7 +1475,8 @@ class RobotLocalizer:
         pose = (float(x), float(y), wrap_angle(float(theta)))
         gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), inlier_ids=tuple(points.ids),
+                       T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain, conditioned=conditioned, tracked=tracked)

@@ -167,6 +167,7 @@ from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
 from agent.localization import PoseFix, RobotLocalizer, head_directions
+from agent.map_refinement import KeyframeView as MappedView, adjust
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
@@ -304,6 +305,7 @@ class Pilot:
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # seq -> (capture stamp, T_WC taken with, a fix of detected markers on it)
+        self._keyframe_landmarks: Dict[int, MappedView] = {}  # seq -> its fix's points, for the map's adjustment (agent/map_refinement.py)
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -604,6 +606,8 @@ class Pilot:
         detected = fix is not None and not fix.tracked  # a tracked marker's centre is too few points for 6 DOF (matrix world 3: 2 of them)
         if detected and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
             loc = self.config.localization
+            self._keyframe_landmarks[seq] = MappedView(T_WC, *fix.inliers, fix.inlier_ids, max(loc.pixel_sigma, fix.rms_px),
+                                                      self.camera.K.copy())
             refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, self._keyframe_pixel_sigma(T_WC, fix),
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
@@ -628,6 +632,7 @@ class Pilot:
         moved by T(p_smoothed) T(p_filtered)^-1; one with a fix keeps its own, refined against the
         frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md)."""
         poses = {seq: T_WC for seq, (_, T_WC, fixed) in self._keyframe_frames.items() if fixed}
+        poses.update(self.adjusted_keyframes())
         if len(poses) == len(self._keyframe_frames):
             return poses  # nothing to smooth: the solve is skipped
         track = self.localizer.track
@@ -638,6 +643,17 @@ class Pilot:
                 j = index.get(stamp)
                 poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
         return poses
+
+    def adjusted_keyframes(self) -> Dict[int, np.ndarray]:
+        """T_WC of the keyframes with a fix of detected markers, adjusted with the map's landmark places
+        (agent/map_refinement.py), by frame seq; {} with an exact map or no landmark seen from two keyframes."""
+        lm, c = self.config.landmarks, self.config.carving
+        seqs = sorted(self._keyframe_landmarks)
+        adjustment = adjust([self._keyframe_landmarks[seq] for seq in seqs], lm.position_sigma, lm.yaw_sigma,
+                            c.keyframe_rotation_sigma, c.keyframe_position_sigma, self.config.localization.max_reprojection_px)
+        if adjustment is None:
+            return {}
+        return {seq: T_WC for seq, T_WC in zip(seqs, adjustment.T_WC) if T_WC is not None}
 
     # per tick ---------------------------------------------------------------------------------
 
