@@ -303,7 +303,7 @@ import collections
 import itertools
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Literal, Mapping, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -1301,11 +1301,14 @@ class RobotLocalizer:
                                          fix.covariance + self._floor if factor else None))
         return fix
 
-    def smoothed_track(self) -> np.ndarray:
+    def smoothed_track(self, fixes: Optional[Mapping[float, Pose]] = None) -> np.ndarray:
         """The poses of ``track``'s frames smoothed over every fix and the odometry between them (N x 3,
-        agent/pose_smoother.py), with the walk's scales as estimated now."""
+        agent/pose_smoother.py), with the walk's scales as estimated now; ``fixes`` (by capture stamp)
+        replace those frames' own (the map's adjustment: agent/map_refinement.py)."""
         p = self.params
-        return smooth_track(self.track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
+        track = self.track if not fixes else [replace(point, fix=fixes[point.stamp])
+                                              if point.fix is not None and point.stamp in fixes else point for point in self.track]
+        return smooth_track(track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
 
     def heading_rate(self) -> Optional[float]:
         """rad/s: how fast the camera turned about the vertical at the last frame (``camera_rate`` in the

@@ -38,7 +38,7 @@ from typing import Dict, Hashable, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
 MIN_DEPTH = 0.05  # m: a point nearer the camera plane than this gives a huge residual (it crossed behind)
@@ -166,19 +166,20 @@ class _Problem:
         uv, _ = self._pixels(v)
         return np.concatenate([((uv - self.u) / self.sigma[:, None]).ravel(), np.where(self.held, 0.0, v / self.prior)])
 
-    def sparsity(self) -> lil_matrix:
+    def sparsity(self) -> coo_matrix:
         n = len(self.X)
-        pattern = lil_matrix((2 * n + self.size, self.size), dtype=int)
-        for i in range(n):
-            k = self.camera[i]
-            for row in (2 * i, 2 * i + 1):
-                pattern[row, 6 * k:6 * k + 6] = 1
-                if self.moved[i]:
-                    j = 6 * self.n_cameras + 4 * self.landmark[i]
-                    pattern[row, j:j + 4] = 1
-        for column in range(self.size):
-            pattern[2 * n + column, column] = 1
-        return pattern
+        point = np.arange(n)
+        rows, columns = [], []
+        for axis in range(2):  # a pixel residual: its camera's six columns and its landmark's four
+            rows.append(np.repeat(2 * point + axis, 6))
+            columns.append((6 * self.camera[:, None] + np.arange(6)).ravel())
+            moved = point[self.moved]
+            rows.append(np.repeat(2 * moved + axis, 4))
+            columns.append((6 * self.n_cameras + 4 * self.landmark[moved][:, None] + np.arange(4)).ravel())
+        rows.append(2 * n + np.arange(self.size))  # the priors
+        columns.append(np.arange(self.size))
+        rows, columns = np.concatenate(rows), np.concatenate(columns)
+        return coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, columns)), shape=(2 * n + self.size, self.size))
 
     def rms(self, v: np.ndarray) -> List[float]:
         uv, _ = self._pixels(v)
