@@ -303,7 +303,7 @@ import collections
 import itertools
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Literal, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -404,7 +404,6 @@ class PoseFix:
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
-    inlier_ids: Tuple[object, ...] = ()  # the landmark id of each inlier point
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with (corrected by the camera tilt learnt then)
     T_BC_reported: Optional[np.ndarray] = None  # the same as reported, before that correction (None: T_BC is)
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
@@ -1301,14 +1300,11 @@ class RobotLocalizer:
                                          fix.covariance + self._floor if factor else None))
         return fix
 
-    def smoothed_track(self, fixes: Optional[Mapping[float, Pose]] = None) -> np.ndarray:
+    def smoothed_track(self) -> np.ndarray:
         """The poses of ``track``'s frames smoothed over every fix and the odometry between them (N x 3,
-        agent/pose_smoother.py), with the walk's scales as estimated now; ``fixes`` (by capture stamp)
-        replace those frames' own (the map's adjustment: agent/map_refinement.py)."""
+        agent/pose_smoother.py), with the walk's scales as estimated now."""
         p = self.params
-        track = self.track if not fixes else [replace(point, fix=fixes[point.stamp])
-                                              if point.fix is not None and point.stamp in fixes else point for point in self.track]
-        return smooth_track(track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
+        return smooth_track(self.track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
 
     def heading_rate(self) -> Optional[float]:
         """rad/s: how fast the camera turned about the vertical at the last frame (``camera_rate`` in the
@@ -1478,8 +1474,7 @@ class RobotLocalizer:
         pose = (float(x), float(y), wrap_angle(float(theta)))
         gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), inlier_ids=tuple(points.ids),
-                       T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain, conditioned=conditioned, tracked=tracked)

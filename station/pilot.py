@@ -167,13 +167,12 @@ from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
 from agent.localization import PoseFix, RobotLocalizer, head_directions
-from agent.map_refinement import KeyframeView as MappedView, adjust
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
 from agent.self_calibration import SelfCalibration
 from agent.standstill import CalibrationStandstill
-from nao_core.geometry import Pose, camera_in_world, compose, invert, planar_pose, planar_transform, relative, wrap_angle
+from nao_core.geometry import Pose, camera_in_world, compose, invert, planar_transform, relative, wrap_angle
 from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel, head_at
 from station.config import StationConfig
@@ -193,7 +192,6 @@ from station.outputs import (
 
 Cam = Tuple[float, float, float]
 VIEWS_KEPT = 900  # filter views kept in the odometry frame for a rebuild (a minute at 15 fps)
-ADJUSTED_FRAMES = 200  # frames with a fix whose cameras the map's adjustment takes at most (every keyframe's among them)
 FACING_TOLERANCE = 0.05  # rad: a head pitch this near its limit at the head's yaw is at the limit (joint tracking, sensor lag)
 MEASURED_RADIUS = 0.5  # the radius std below this share of its prior: widths were measured, no facing turn
 FRUITLESS_RADIUS = 0.3  # rad (yaw or pitch): head directions this near a standing look that gave no fix are not looked at again
@@ -306,8 +304,6 @@ class Pilot:
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # seq -> (capture stamp, T_WC taken with, a fix of detected markers on it)
-        self._fix_views: Dict[float, Tuple[MappedView, PoseFix]] = {}  # capture stamp -> a fix's points with the camera it was
-        # taken with, and the fix: the map's adjustment (agent/map_refinement.py), kept only for a map that states its error
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -445,7 +441,6 @@ class Pilot:
             cam = (float(T_WC[0, 3]), float(T_WC[1, 3]), optical_axis_heading(T_WC))
             T_OC = camera_in_world(tuple(float(v) for v in meta.odom), T_BC)
             cam_odom = (float(T_OC[0, 3]), float(T_OC[1, 3]), optical_axis_heading(T_OC))
-            self._keep_fix_view(meta.stamp, T_WC, fix)
             turn_rate = self.localizer.heading_rate()  # from this frame and the last (agent/localization.py)
             stamp_variance = self._stamp_heading_variance(turn_rate, meta.stamp_std)
         with guarded("calibration"):
@@ -631,48 +626,18 @@ class Pilot:
         """T_WC of every keyframe (by frame seq) for the final carve: one without a fix on its frame has
         its planar pose smoothed over the whole walk (agent/pose_smoother.py), the T_WC it was taken with
         moved by T(p_smoothed) T(p_filtered)^-1; one with a fix keeps its own, refined against the
-        frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md).
-        With a map that states its error, the fixes' cameras are first adjusted with the landmarks'
-        places (``adjusted_fixes``): a keyframe with a fix takes its adjusted camera, and the walk is
-        smoothed over the fixes those cameras give."""
-        adjusted = self.adjusted_fixes()
-        poses = {seq: adjusted.get(stamp, T_WC) for seq, (stamp, T_WC, fixed) in self._keyframe_frames.items() if fixed}
+        frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md)."""
+        poses = {seq: T_WC for seq, (_, T_WC, fixed) in self._keyframe_frames.items() if fixed}
         if len(poses) == len(self._keyframe_frames):
             return poses  # nothing to smooth: the solve is skipped
         track = self.localizer.track
-        fixes = {stamp: planar_pose(T_WC @ invert(self._fix_views[stamp][1].T_WC) @ planar_transform(*self._fix_views[stamp][1].pose))
-                 for stamp, T_WC in adjusted.items()}
-        smoothed = self.localizer.smoothed_track(fixes)
+        smoothed = self.localizer.smoothed_track()
         index = {point.stamp: j for j, point in enumerate(track)}
         for seq, (stamp, T_WC, fixed) in self._keyframe_frames.items():
             if not fixed:
                 j = index.get(stamp)
                 poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
         return poses
-
-    def _keep_fix_view(self, stamp: float, T_WC: np.ndarray, fix: Optional[PoseFix]) -> None:
-        """Keep a fix of detected markers for the map's adjustment, when the map states an error."""
-        lm, loc = self.config.landmarks, self.config.localization
-        if fix is None or fix.tracked or fix.inliers is None or (lm.position_sigma == 0.0 and lm.yaw_sigma == 0.0):
-            return
-        view = MappedView(T_WC, *fix.inliers, fix.inlier_ids, max(loc.pixel_sigma, fix.rms_px), self.camera.K.copy())
-        self._fix_views[stamp] = (view, fix)
-
-    def adjusted_fixes(self) -> Dict[float, np.ndarray]:
-        """T_WC of the frames with a fix of detected markers, by capture stamp, adjusted with the map's
-        landmark places (agent/map_refinement.py): every keyframe's, and others evenly in time up to
-        ``ADJUSTED_FRAMES`` in all; {} with an exact map or no landmark seen from two frames."""
-        keyframes = {stamp for stamp, _, fixed in self._keyframe_frames.values() if fixed}
-        stamps = sorted(self._fix_views)
-        others = [s for s in stamps if s not in keyframes]
-        room = max(0, ADJUSTED_FRAMES - len(keyframes))
-        chosen = sorted(keyframes.intersection(stamps) | set(others[::max(1, math.ceil(len(others) / room))] if room else ()))
-        lm, c = self.config.landmarks, self.config.carving
-        adjustment = adjust([self._fix_views[s][0] for s in chosen], lm.position_sigma, lm.yaw_sigma, c.keyframe_rotation_sigma,
-                            c.keyframe_position_sigma, self.config.localization.max_reprojection_px)
-        if adjustment is None:
-            return {}
-        return {s: T_WC for s, T_WC in zip(chosen, adjustment.T_WC) if T_WC is not None}
 
     # per tick ---------------------------------------------------------------------------------
 
