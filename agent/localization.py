@@ -316,7 +316,7 @@ from agent.keep_in import KeepIn
 from agent.marker_corners import refine_corners
 from agent.marker_tracking import marker_texture, rotation_flow, track_marker
 from agent.perception import ColorClass, PerceptionParams, check_image, color_mask
-from agent.pose_smoother import MapGain, Smoothed, TrackPoint, smooth_track
+from agent.pose_smoother import TrackPoint, smooth_track
 from nao_core.config import bounds
 from nao_core.geometry import (
     Pose,
@@ -404,7 +404,6 @@ class PoseFix:
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
-    inlier_ids: Tuple[object, ...] = ()  # the landmark id of each inlier point
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with (corrected by the camera tilt learnt then)
     T_BC_reported: Optional[np.ndarray] = None  # the same as reported, before that correction (None: T_BC is)
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
@@ -413,7 +412,6 @@ class PoseFix:
     intrinsics_gain: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))  # G = d(x, y, theta)/d(s_x, s_y, d_u, d_v)
     conditioned: bool = False  # pose and covariance are the frame's data and the prior's together (module docstring)
     tracked: int = 0  # markers among its landmarks that were tracked from the prior (agent/marker_tracking.py)
-    map_gain: Optional[MapGain] = None  # how it moves with its landmarks' displacements (a map that states its error, unconditioned)
 
 
 @dataclass(frozen=True)
@@ -448,7 +446,6 @@ Box = Tuple[int, int, int, int, float, int]  # x0, y0, x1, y1 (full-size px), sm
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 SCALE_BOUNDS = (0.7, 1.3)  # the odometry scales s are kept within these (a NAO's walk is off by a few percent)
 MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
-PIXEL_SHARE_FLOOR = 1e-10  # (m, rad)^2: the least eigenvalue of a fix's covariance without the map's share
 
 
 @dataclass
@@ -548,14 +545,18 @@ class PlanarModel:
         dproj[:, :, 2] = -self.f * X_C[:, :2] / z[:, None] ** 2
         return dproj @ R_CW
 
-    def map_moves(self, p: np.ndarray, X: np.ndarray, group: np.ndarray) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per landmark of ``group`` (in order of its ids): (its points' indices, D_m its points' pixel moves
-        (2 k_m x q_m) under its own translation along the world's three axes and, a marker (four points),
-        its turn about the vertical through its centre, their variances S_m (q_m)) at p (module
-        docstring, Map error)."""
-        position_sigma, yaw_sigma, _ = self.map_error
+    def whitener(self, p: np.ndarray, X: np.ndarray, group: Optional[np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
+        """The map taking rows (2N x k: residuals or their derivatives, points in order) to A rows, A the
+        block-diagonal whitening of the points' errors at p: per landmark of ``group``,
+        A_m^T A_m = s^2 (s^2 I + D_m S D_m^T)^-1, D_m its points' pixel moves under its own translation
+        (three axes) and, a marker, turn about the vertical (module docstring, Map error), S their
+        variances, s the pixel sigma. The identity with an exact map or no groups; NoFix when a C_m has
+        no Cholesky factor."""
+        position_sigma, yaw_sigma, pixel_sigma = self.map_error
+        if group is None or (position_sigma == 0.0 and yaw_sigma == 0.0) or not len(X):
+            return lambda rows: rows
         dU = self.point_jacobian(p, X)
-        moves_of = []
+        factors = []  # (the landmark's rows, L_m with L_m L_m^T = C_m)
         for g in np.unique(group):
             mine = np.flatnonzero(group == g)
             moves, variances = [np.tile(axis, (len(mine), 1)) for axis in np.eye(3)], [position_sigma**2] * 3
@@ -564,19 +565,6 @@ class PlanarModel:
                 moves.append(np.column_stack([-arm[:, 1], arm[:, 0], np.zeros(len(mine))]))
                 variances.append(yaw_sigma**2)
             D = np.column_stack([np.einsum("nij,nj->ni", dU[mine], move).ravel() for move in moves])
-            moves_of.append((mine, D, np.array(variances)))
-        return moves_of
-
-    def whitener(self, p: np.ndarray, X: np.ndarray, group: Optional[np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
-        """The map taking rows (2N x k: residuals or their derivatives, points in order) to A rows, A the
-        block-diagonal whitening of the points' errors at p: per landmark of ``group``,
-        A_m^T A_m = s^2 (s^2 I + D_m S_m D_m^T)^-1 (``map_moves``; module docstring, Map error), s the
-        pixel sigma. The identity with an exact map or no groups; NoFix when a C_m has no Cholesky factor."""
-        position_sigma, yaw_sigma, pixel_sigma = self.map_error
-        if group is None or (position_sigma == 0.0 and yaw_sigma == 0.0) or not len(X):
-            return lambda rows: rows
-        factors = []  # (the landmark's rows, L_m with L_m L_m^T = C_m)
-        for mine, D, variances in self.map_moves(p, X, group):
             try:
                 L = np.linalg.cholesky(pixel_sigma**2 * np.eye(2 * len(mine)) + (D * variances) @ D.T)
             except np.linalg.LinAlgError as exc:
@@ -655,20 +643,6 @@ class PlanarModel:
         if not math.isfinite(rms):
             raise NoFix("non-finite reprojection error")
         return p, rms, err, H
-
-
-def displaced_points(X: np.ndarray, ids: Sequence[object], displacement: Dict[Tuple[object, int], float]) -> np.ndarray:
-    """World points (N x 3) of landmarks ``ids`` (one per point) moved by their ``displacement`` (by
-    (landmark id, axis): agent/pose_smoother.py), as ``PlanarModel.map_moves`` moves them: along the
-    world's axes 0-2, and by axis 3 a turn about the vertical through the mean of the landmark's points."""
-    moved = np.array(X, dtype=float, copy=True)
-    ids = np.array(ids, dtype=object)
-    for landmark in dict.fromkeys(ids):
-        mine = ids == landmark
-        moved[mine] += [displacement.get((landmark, axis), 0.0) for axis in range(3)]
-        arm = X[mine] - X[mine].mean(axis=0)
-        moved[mine, :2] += displacement.get((landmark, 3), 0.0) * np.column_stack([-arm[:, 1], arm[:, 0]])
-    return moved
 
 
 def _planar_seeds(model: PlanarModel, rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> List[np.ndarray]:
@@ -1322,16 +1296,13 @@ class RobotLocalizer:
         pose = self.pose_at(odom)
         if pose is not None:
             factor = fix is not None and not fix.conditioned  # a conditioned fix holds the prior's information too
-            gain = fix.map_gain if factor else None
             self.track.append(TrackPoint(stamp, odom, pose, self._segment, fix.pose if factor else None,
-                                         fix.covariance + self._floor if factor else None,
-                                         None if gain is None else replace(gain, covariance=gain.covariance + self._floor)))
+                                         fix.covariance + self._floor if factor else None))
         return fix
 
-    def smoothed_track(self) -> Smoothed:
-        """The poses of ``track``'s frames smoothed over every fix and the odometry between them (N x 3),
-        and the landmarks' displacements the walk found with a map that states its error
-        (agent/pose_smoother.py), with the walk's scales as estimated now."""
+    def smoothed_track(self) -> np.ndarray:
+        """The poses of ``track``'s frames smoothed over every fix and the odometry between them (N x 3,
+        agent/pose_smoother.py), with the walk's scales as estimated now."""
         p = self.params
         return smooth_track(self.track, self.scale, p.odom_translation_noise, p.odom_rotation_noise)
 
@@ -1498,17 +1469,15 @@ class RobotLocalizer:
             G, share_covariance = head_pivot(p, float(model.T_BC[2, 3]), tilt_covariance, sway_covariance)
             covariance, Jr, Jc = self._fix_covariance(model, points, p, H, G, share_covariance, residual_var)
             information, evidence = np.zeros((2, 2)), np.zeros(2)  # the prior's information is not the data's
-        map_gain = None if conditioned else self._map_gain(model, points, p, H, G, covariance)
         T_WC = camera_in_world(tuple(p[:3]), rot_x(p[3]) @ rot_y(p[4]) @ model.T_BC)
         x, y, theta = G @ p
         pose = (float(x), float(y), wrap_angle(float(theta)))
         gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), inlier_ids=tuple(points.ids),
-                       T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
-                       intrinsics_gain=gain, conditioned=conditioned, tracked=tracked, map_gain=map_gain)
+                       intrinsics_gain=gain, conditioned=conditioned, tracked=tracked)
 
     def _conditioned_fit(self, model: PlanarModel, points: _Points, prior_p: np.ndarray, prior_covariance: np.ndarray,
                          G: np.ndarray, tilt_covariance: np.ndarray, std: float) -> Tuple[np.ndarray, float, np.ndarray]:
@@ -1539,31 +1508,6 @@ class RobotLocalizer:
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
         return covariance, Jr, whiten(model.intrinsics_jacobian(uv).reshape(-1, 4))
-
-    def _map_gain(self, model: PlanarModel, points: _Points, p: np.ndarray, H: np.ndarray, G: np.ndarray,
-                  covariance: np.ndarray) -> Optional[MapGain]:
-        """How the fix G p moves with its landmarks' displacements, and its covariance without their share
-        (agent/pose_smoother.py, "Landmark places from the walk"): the fit's generalized least squares
-        gives dp = H^-1 Jr^T A D delta (``PlanarModel.map_moves``, ``whitener``), so the fix's gain is
-        G H^-1 Jr^T A D and the map's share of its covariance G (H^-1 Jr^T A D) S (...)^T G^T. None with an
-        exact map."""
-        position_sigma, yaw_sigma, _ = model.map_error
-        if position_sigma == 0.0 and yaw_sigma == 0.0:
-            return None
-        whiten = model.whitener(p, points.X, points.group)
-        Jr = whiten(model.jacobian(p, points.X)[2].reshape(-1, 5))
-        moves = model.map_moves(p, points.X, points.group)
-        D = np.zeros((2 * len(points), sum(len(variances) for _, _, variances in moves)))
-        labels: List[Tuple[object, int]] = []
-        for mine, D_m, variances in moves:
-            rows = np.ravel(np.column_stack([2 * mine, 2 * mine + 1]))
-            D[rows, len(labels):len(labels) + len(variances)] = D_m
-            labels += [(points.ids[mine[0]], axis) for axis in range(len(variances))]
-        variances = np.concatenate([v for _, _, v in moves])
-        gain = G @ np.linalg.solve(H, Jr.T @ whiten(D))
-        pixels = covariance - (gain * variances) @ gain.T
-        values, vectors = np.linalg.eigh(0.5 * (pixels + pixels.T))
-        return MapGain(tuple(labels), gain, np.sqrt(variances), (vectors * np.maximum(values, PIXEL_SHARE_FLOOR)) @ vectors.T)
 
     def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray,
                           whiten: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

@@ -166,7 +166,7 @@ from agent.ekf import FloorContact, ObjectEKF, UpdateResult, measure
 from agent.head_servo import ObjectHeight, head_target
 from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
-from agent.localization import PoseFix, RobotLocalizer, displaced_points, head_directions
+from agent.localization import PoseFix, RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
 from agent.perception import extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
@@ -304,7 +304,6 @@ class Pilot:
         self._last_capture: Optional[float] = None
         self._keyframes = KeyframePool(self.config.station.keyframe_min_angle)
         self._keyframe_frames: Dict[int, Tuple[float, np.ndarray, bool]] = {}  # seq -> (capture stamp, T_WC taken with, a fix of detected markers on it)
-        self._keyframe_fixes: Dict[int, Tuple[np.ndarray, PoseFix, np.ndarray]] = {}  # seq -> (fused T_WC, its fix, K): a map with error
         self.height = ObjectHeight()  # the object's top from the silhouettes: aim height and the planner's c_h
         self._sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # centroid, head at capture
         self._last_sighting: Optional[Tuple[Tuple[float, float], Tuple[float, float]]] = None  # kept while unseen
@@ -605,8 +604,6 @@ class Pilot:
         detected = fix is not None and not fix.tracked  # a tracked marker's centre is too few points for 6 DOF (matrix world 3: 2 of them)
         if detected and fix.inliers is not None:  # the frame's own landmarks refine its camera pose (agent/keyframe_pose.py)
             loc = self.config.localization
-            if fix.map_gain is not None:  # refined again at the end, against the landmarks' places the walk found
-                self._keyframe_fixes[seq] = (T_WC, fix, self.camera.K.copy())
             refined = refine_camera_pose(T_WC, *fix.inliers, self.camera.K, self._keyframe_pixel_sigma(T_WC, fix),
                                          c.keyframe_rotation_sigma, c.keyframe_position_sigma, loc.max_reprojection_px)
             T_WC = T_WC if refined is None else refined
@@ -629,32 +626,17 @@ class Pilot:
         """T_WC of every keyframe (by frame seq) for the final carve: one without a fix on its frame has
         its planar pose smoothed over the whole walk (agent/pose_smoother.py), the T_WC it was taken with
         moved by T(p_smoothed) T(p_filtered)^-1; one with a fix keeps its own, refined against the
-        frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md).
-        With a map that states its error, the smoothing also finds the landmarks' displacements from
-        their mapped places (agent/pose_smoother.py, "Landmark places from the walk"), and a keyframe
-        with a fix is refined again, from its smoothed pose, against its points so moved."""
+        frame's points, which see the camera's sway that the smoothed walk irons out (docs/carving.md)."""
         poses = {seq: T_WC for seq, (_, T_WC, fixed) in self._keyframe_frames.items() if fixed}
-        if len(poses) == len(self._keyframe_frames) and not self._keyframe_fixes:
+        if len(poses) == len(self._keyframe_frames):
             return poses  # nothing to smooth: the solve is skipped
         track = self.localizer.track
-        smoothed, displacement = self.localizer.smoothed_track()
+        smoothed = self.localizer.smoothed_track()
         index = {point.stamp: j for j, point in enumerate(track)}
-
-        def moved(stamp: float, T_WC: np.ndarray) -> np.ndarray:  # by the smoothing, from the filter's pose
-            j = index.get(stamp)
-            return T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
-
-        c, loc = self.config.carving, self.config.localization
         for seq, (stamp, T_WC, fixed) in self._keyframe_frames.items():
             if not fixed:
-                poses[seq] = moved(stamp, T_WC)
-            elif seq in self._keyframe_fixes and displacement:
-                fused, fix, K = self._keyframe_fixes[seq]
-                prior = moved(stamp, fused)
-                refined = refine_camera_pose(prior, displaced_points(fix.inliers[0], fix.inlier_ids, displacement), fix.inliers[1], K,
-                                             self._keyframe_pixel_sigma(prior, fix), c.keyframe_rotation_sigma,
-                                             c.keyframe_position_sigma, loc.max_reprojection_px)
-                poses[seq] = poses[seq] if refined is None else refined
+                j = index.get(stamp)
+                poses[seq] = T_WC if j is None else planar_transform(*smoothed[j]) @ invert(planar_transform(*track[j].pose)) @ T_WC
         return poses
 
     # per tick ---------------------------------------------------------------------------------

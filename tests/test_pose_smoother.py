@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.pose_smoother import MapGain, TrackPoint, smooth_track
+from agent.pose_smoother import TrackPoint, smooth_track
 from nao_core.geometry import compose, relative, wrap_angle
 
 K_T, K_R = 0.03, 0.03  # the filter's odometry noise (config/localization.yaml)
@@ -61,7 +61,7 @@ def test_smoothing_cuts_the_error_between_fixes():
     for seed in range(5):
         true, odom, fixes = walk(np.random.default_rng(seed))
         filtered = dead_reckoned(odom, fixes)
-        smoothed = smooth_track(track_of(odom, fixes, filtered), (1.0, 1.0, 1 / 0.95), K_T, K_R).poses
+        smoothed = smooth_track(track_of(odom, fixes, filtered), (1.0, 1.0, 1 / 0.95), K_T, K_R)
         walking = np.array([z is None for z in fixes])
         before += list(heading_errors(filtered, true)[walking])
         after += list(heading_errors(smoothed, true)[walking])
@@ -75,11 +75,11 @@ def test_smoothing_cuts_the_error_between_fixes():
 
 def test_a_wrong_fix_moves_its_neighbours_little():
     true, odom, fixes = walk(np.random.default_rng(3))
-    clean = smooth_track(track_of(odom, fixes, dead_reckoned(odom, fixes)), (1.0, 1.0, 1.0), K_T, K_R).poses
+    clean = smooth_track(track_of(odom, fixes, dead_reckoned(odom, fixes)), (1.0, 1.0, 1.0), K_T, K_R)
     standing = [j for j, z in enumerate(fixes) if z is not None]
     bad = standing[len(standing) // 2]
     fixes[bad] = (fixes[bad][0] + 0.5, fixes[bad][1], fixes[bad][2] + 0.3)  # a wrong association that passed the gate
-    smoothed = smooth_track(track_of(odom, fixes, dead_reckoned(odom, fixes)), (1.0, 1.0, 1.0), K_T, K_R).poses
+    smoothed = smooth_track(track_of(odom, fixes, dead_reckoned(odom, fixes)), (1.0, 1.0, 1.0), K_T, K_R)
     others = np.ones(len(fixes), dtype=bool)
     others[bad] = False
     shift = np.hypot(*(smoothed[others, :2] - clean[others, :2]).T)
@@ -92,48 +92,8 @@ def test_segments_are_smoothed_apart_and_one_without_a_fix_keeps_its_poses():
     half = len(odom) // 2
     first = track_of(odom[:half], fixes[:half], filtered[:half], segment=0)
     second = track_of(odom[half:], [None] * (len(odom) - half), filtered[half:], segment=1)  # after a reset: no fix yet
-    smoothed = smooth_track(first + second, (1.0, 1.0, 1.0), K_T, K_R).poses
+    smoothed = smooth_track(first + second, (1.0, 1.0, 1.0), K_T, K_R)
     np.testing.assert_array_equal(smoothed[half:], np.array(filtered[half:]))
-    alone = smooth_track(first, (1.0, 1.0, 1.0), K_T, K_R).poses
+    alone = smooth_track(first, (1.0, 1.0, 1.0), K_T, K_R)
     np.testing.assert_allclose(smoothed[:half], alone)
 
-
-
-def test_the_walk_finds_the_landmarks_displacements_and_the_poses_without_their_error():
-    """A map measured 5 mm off: 16 landmarks on a ring 2 m out; the robot orbits (``walk``) with its head on
-    the orbit's centre, turning it 40 deg either way while it stands, and every frame's fix is made of the
-    landmarks within 28 deg of its gaze, off by their displacements through its gain (a fix follows its k
-    landmarks: -d / k each in position, their sideways share over the range in heading), plus 1 mm of
-    pixel noise. A standing robot's fixes of other landmarks share one pose. Smoothed with the gains
-    (agent/pose_smoother.py, "Landmark places from the walk"), the displacements are found and the poses'
-    median error falls to under 0.6 of what the same fixes give smoothed with the map's share in their
-    covariance; the ring's common shift, which no walk sees, stays the prior's."""
-    rng = np.random.default_rng(7)
-    true, odom, _ = walk(rng)
-    ring = np.array([(2.0 * math.cos(a), 2.0 * math.sin(a)) for a in np.linspace(0.0, 2 * math.pi, 16, endpoint=False)])
-    sigma = 0.005
-    displacement = rng.normal(0.0, sigma, (16, 2))
-    pixel = np.diag([0.001, 0.001, 0.0005]) ** 2
-    with_gain, without = [], []
-    for j, (pose, o) in enumerate(zip(true, odom)):
-        gaze = math.atan2(-pose[1], -pose[0]) + (0.7 * math.sin(j / 10.0 * math.pi) if (j / 10.0) % 8.0 < 2.0 else 0.0)
-        facing = [m for m in range(16) if abs(wrap_angle(math.atan2(*(ring[m] - pose[:2])[::-1]) - gaze)) < math.radians(28.0)]
-        k = len(facing)
-        gain = np.zeros((3, 2 * k))
-        for i, m in enumerate(facing):
-            arm = ring[m] - pose[:2]
-            gain[:2, 2 * i:2 * i + 2] = -np.eye(2) / k
-            gain[2, 2 * i:2 * i + 2] = np.array([arm[1], -arm[0]]) / (arm @ arm) / k
-        z = tuple(pose + gain @ displacement[facing].ravel() + rng.multivariate_normal(np.zeros(3), pixel))
-        R = pixel + sigma**2 * gain @ gain.T
-        labels = tuple((m, axis) for m in facing for axis in (0, 1))
-        with_gain.append(TrackPoint(float(j), o, z, 0, z, R, MapGain(labels, gain, np.full(2 * k, sigma), pixel)))
-        without.append(TrackPoint(float(j), o, z, 0, z, R))
-    found = smooth_track(with_gain, (1.0, 1.0, 1 / 0.95), K_T, K_R)
-    held = smooth_track(without, (1.0, 1.0, 1 / 0.95), K_T, K_R)
-    assert not held.displacement and len(found.displacement) == 32
-    error = lambda poses: np.median(np.hypot(*(poses[:, :2] - true[:, :2]).T))  # noqa: E731
-    assert error(found.poses) < 0.6 * error(held.poses), (error(found.poses), error(held.poses))
-    estimate = np.array([[found.displacement[(m, axis)] for axis in (0, 1)] for m in range(16)])
-    left = (displacement - estimate) - (displacement - estimate).mean(axis=0)
-    assert np.sqrt(np.mean(left**2)) < 0.5 * np.sqrt(np.mean((displacement - displacement.mean(axis=0)) ** 2))
