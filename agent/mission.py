@@ -18,6 +18,8 @@ Phases and transitions (t is the caller's clock, s; the first ``tick`` starts th
     any of INIT, SEARCH, ACTIVE --t - t_start >= max_duration--> DONE (outcome 'time_limit')
     DONE    --next tick--> STOPPING
     any     --fall, bridge lost, interrupt, object lost, landmarks lost, search exhausted--> STOPPING
+            (a search exhausted: outcome 'object_not_found', the reason ending with ``object_note``:
+            other colour classes' silhouettes the frames showed)
     STOPPING --a state received after the stop says not walking, or stop_timeout--> FINISHED
 
 Abort rules in LOCALIZE and ACTIVE: the object unseen for ``object_lost_timeout`` s of frames
@@ -173,6 +175,8 @@ class Mission:
         self.flooded_frames = 0  # frames the object's colour filled from side to side (not a sighting)
         # the caller's account of what the frames showed that the map does not hold, read when 'landmarks_lost' is said
         self.landmark_note: Callable[[], str] = str
+        # and of the colours it showed where the object's was not, read when the object is said not seen
+        self.object_note: Callable[[], str] = str
         self.frame_failures = 0  # frames in a row a per-frame step failed on
 
     # events -----------------------------------------------------------------------------------
@@ -277,12 +281,12 @@ class Mission:
             return self._search(t)
         if self.phase is Phase.LOCALIZE:
             if self._lost(t):
-                self._end(t, Outcome.OBJECT_LOST, self._lost_reason(t) + " while waiting for a landmark fix" + self._flood_note())
+                self._end(t, Outcome.OBJECT_LOST, self._lost_reason(t) + " while waiting for a landmark fix" + self._object_notes(colours=False))
             else:
                 return Decision(self.phase, walk=(0.0, 0.0, 0.0))
         if self.phase is Phase.ACTIVE:
             if self._t_object is None or self._lost(t):
-                self._end(t, Outcome.OBJECT_LOST, self._lost_reason(t) + self._flood_note())
+                self._end(t, Outcome.OBJECT_LOST, self._lost_reason(t) + self._object_notes(colours=False))
             elif self._t_fix is None or t - self._t_fix > p.landmarks_lost_timeout:
                 self._end(t, Outcome.LANDMARKS_LOST, f"no landmark fix for {p.landmarks_lost_timeout:g} s" + self._landmark_note())
             elif self._position_std > p.landmarks_lost_std:
@@ -316,7 +320,7 @@ class Mission:
             self._t_turn = t
         if t - self._t_turn >= p.search_turn_duration:
             self._end(t, Outcome.OBJECT_NOT_FOUND, f"object not seen in a head scan and {p.search_max_turns:g} turns "
-                      f"(landmarks detected in {self.landmark_frames} frames)" + self._flood_note())
+                      f"(landmarks detected in {self.landmark_frames} frames)" + self._object_notes())
             return self.tick(t)
         return Decision(self.phase, walk=(0.0, 0.0, p.search_turn_rate), head=(0.0, p.init_pitch))
 
@@ -326,11 +330,14 @@ class Mission:
         note = self.landmark_note()
         return f"; {note}" if note else ""
 
-    def _flood_note(self) -> str:
-        if not self.flooded_frames:
-            return ""
-        return (f"; the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall or "
-                f"something large has its colour (docs/perception.md, \"Colours\")")
+    def _object_notes(self, colours: bool = True) -> str:
+        """What the frames showed instead of the object: its colour flooding them, and (``colours``: an object
+        never seen) other colours' silhouettes."""
+        notes = [self.object_note() if colours else ""]
+        if self.flooded_frames:
+            notes.insert(0, f"the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall "
+                            f"or something large has its colour (docs/perception.md, \"Colours\")")
+        return "".join(f"; {note}" for note in notes if note)
 
     @property
     def head(self) -> Optional[Tuple[float, float]]:

@@ -57,8 +57,9 @@ The silhouette's top and bottom rows (``top_row``, ``bottom_row``) give its vert
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Tuple
+from typing import Dict, Iterable, List, Literal, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -282,18 +283,10 @@ def extract_silhouette(
     Raises ``ImageError`` on anything that is not an H x W x 3 uint8 image.
     """
     image = check_image(image_bgr, size)
-    name = params.object_color if color is None else color
-    if name not in params.colors:
-        raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
-    color_class = params.colors[name]
-    region = color_region(image, color_class, 2 * max(params.open_radius, params.close_radius) + 1)
-    if region is None:
+    found = _components(image, params, params.object_color if color is None else color)
+    if found is None:
         return None
-    x0, y0, x1, y1 = region
-    cleaned = clean_mask(color_mask(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2HSV), color_class), params)
-    contours, areas, centroids = blobs(cleaned, params.min_area)
-    if not contours:
-        return None
+    (x0, y0), cleaned, contours, areas, centroids = found
     if params.component == "nearest" and predicted_uv is not None:
         best = int(np.argmin(np.hypot(*(centroids + (x0, y0) - np.asarray(predicted_uv, dtype=float)).T)))
     else:
@@ -329,6 +322,63 @@ def extract_silhouette(
         left_edge=left_edge,
         right_edge=right_edge,
     )
+
+
+def largest_area(image_bgr: np.ndarray, params: PerceptionParams, color: str) -> int:
+    """px: the largest component of colour class ``color`` a frame holds (as ``extract_silhouette`` finds
+    them, at least ``min_area``), 0 when none."""
+    found = _components(check_image(image_bgr), params, color)
+    return 0 if found is None else int(found[3].max())
+
+
+def free_classes(params: PerceptionParams, taken: Iterable[str] = ()) -> List[str]:
+    """The colour classes neither the object's nor in ``taken`` (the map's balls'), sorted."""
+    return sorted(set(params.colors) - {params.object_color} - set(taken))
+
+
+class ColourTally:
+    """The frames without the object's colour in which another colour class filled a silhouette: what a
+    mission that never saw its object names in its reason (agent/mission.py, ``object_note``), since a
+    room's object of another colour than ``object_color`` is otherwise "not seen" in plain view. Every
+    ``every``-th frame it is asked about, each class that is neither the object's nor in ``taken`` (the
+    map's balls) is searched (``largest_area``)."""
+
+    def __init__(self, params: PerceptionParams, taken: Iterable[str] = (), every: int = 5):
+        self.params, self.every = params, every
+        self.free = free_classes(params, taken)
+        self.frames = 0
+        self.seen: Counter = Counter()
+
+    def look(self, image_bgr: np.ndarray) -> None:
+        """A frame without a silhouette of the object's colour."""
+        self.frames += 1
+        if self.frames % self.every == 0:
+            self.seen.update(c for c in self.free if largest_area(image_bgr, self.params, c))
+
+    def note(self, min_frames: int = 3) -> str:
+        """The classes seen in at least ``min_frames`` searched frames, most first, and what to do; "" when none."""
+        seen = [(c, n) for c, n in self.seen.most_common() if n >= min_frames]
+        if not seen:
+            return ""
+        listed = ", ".join(f"{c} in {n}" for c, n in seen)
+        return (f"silhouettes of other colour classes were seen where none of {self.params.object_color} was ({listed} of "
+                f"{self.frames // self.every} frames searched): if the object has one of them, set perception.object_color "
+                f"(docs/perception.md)")
+
+
+def _components(image: np.ndarray, params: PerceptionParams, name: str):
+    """((x0, y0) of the searched region, its cleaned mask, and the components of at least ``min_area``
+    in it: contours, areas, centroids) of colour class ``name``, or None when there is none."""
+    if name not in params.colors:
+        raise ValueError(f"unknown colour class {name!r} (known: {sorted(params.colors)})")
+    color_class = params.colors[name]
+    region = color_region(image, color_class, 2 * max(params.open_radius, params.close_radius) + 1)
+    if region is None:
+        return None
+    x0, y0, x1, y1 = region
+    cleaned = clean_mask(color_mask(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2HSV), color_class), params)
+    contours, areas, centroids = blobs(cleaned, params.min_area)
+    return ((x0, y0), cleaned, contours, areas, centroids) if contours else None
 
 
 def outline_edges(

@@ -10,7 +10,9 @@ Checks, in order (a failed connection stops there):
 * the clock offset: median over frames of (station arrival - bridge capture stamp); the bridge
   drops walk commands older than their TTL, so |offset| must stay below ``station.walk_ttl``;
 * the battery (``station.doctor_min_battery``), fallen, the bridge's watchdog state;
-* landmarks visible now: a landmark pose fix (``RobotLocalizer.measure``) on the newest frame.
+* landmarks visible now: a landmark pose fix (``RobotLocalizer.measure``) on the newest frame;
+* the object in view: a silhouette of ``perception.object_color`` on it, or the other colour classes'
+  largest ones there (``object_check``: an object of another colour than configured).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.localization import RobotLocalizer
+from agent.perception import extract_silhouette, free_classes, largest_area
 from nao_core.naoqi_api import error_line
 from nao_core.protocol import ProtocolError, State, decode, decode_frame
 from station.config import StationConfig, load_station_config
@@ -125,7 +128,23 @@ def robot_checks(config: StationConfig, info, frames: list, states: List[State],
                   else f"no pose fix ({localizer.no_fix_reason or 'no landmark seen'})" + (f"; {unmapped}" if unmapped else ""))
         checks.append(Check("landmarks visible", fix is not None, detail,
                             f"turn the robot towards the landmarks of {config.station.landmark_map}, or fix the map (docs/frames.md)"))
+        checks.append(object_check(config, image))
     return checks
+
+
+def object_check(config: StationConfig, image: np.ndarray) -> Check:
+    """A silhouette of the object's colour class in the frame; failing, the largest silhouettes of the classes
+    neither the object's nor the map's balls' (agent/perception.py): an object of another colour than
+    configured is named."""
+    perception = config.perception
+    silhouette = extract_silhouette(image, perception)
+    if silhouette is not None:
+        return Check("object in view", True, f"a {perception.object_color} silhouette of {silhouette.area} px", "")
+    areas = {c: largest_area(image, perception, c) for c in free_classes(perception, {lm.color for lm in config.landmarks.of_kind("color")})}
+    seen = ", ".join(f"{c} ({a} px)" for c, a in sorted(areas.items(), key=lambda item: -item[1]) if a)
+    return Check("object in view", False, f"no {perception.object_color} silhouette" + (f"; in view: {seen}" if seen else ""),
+                 f"put the object a metre in front of the robot; if it is not {perception.object_color}, set "
+                 f"perception.object_color (docs/perception.md), and check its class with station pick-colors")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -168,7 +168,7 @@ from agent.keyframe_pose import refine_camera_pose
 from agent.keyframes import KeyframePool, pose_quality, silhouette_quality
 from agent.localization import PoseFix, RobotLocalizer, head_directions
 from agent.mission import Decision, Mission, Phase
-from agent.perception import extract_silhouette, measure_object
+from agent.perception import ColourTally, extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
 from agent.self_calibration import SelfCalibration
 from agent.standstill import CalibrationStandstill
@@ -285,6 +285,8 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.mission.landmark_note = self.localizer.detector.diagnosis  # read only when a reason needs it
+        self.colours = ColourTally(config.perception, {lm.color for lm in config.landmarks.of_kind("color")})
+        self.mission.object_note = self.colours.note
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
         self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]),
                                                      config.localization.aruco_min_side_px)  # the planner's c_m
@@ -458,6 +460,8 @@ class Pilot:
         with guarded("perception"):
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
+            if silhouette is None:
+                self.colours.look(image)
             flooded = silhouette is not None and silhouette.spans_image
             measurement = None if silhouette is None or flooded else measure_object(silhouette, self.camera, T_WC,
                                                                                    self.config.perception)

@@ -100,11 +100,24 @@ def test_an_object_colour_filling_the_frames_is_named_when_the_object_is_not_fou
     assert "object's colour filled 4 frames from side to side" in d.reason and "floor" in d.reason
 
 
+def test_an_object_never_found_is_said_with_the_caller_s_note_on_other_colours():
+    """``object_note`` (the pilot's tally of other colour classes' silhouettes: agent/perception.py
+    ``ColourTally``) ends the reason of an object never found, read once, when it is written."""
+    mission = searching_mission()
+    calls = []
+    mission.object_note = lambda: calls.append(1) or "blue in 5 of 9 frames searched"
+    d = follow_head(mission, 0.0, len(P.search_head_yaws) * (P.search_dwell + DT) + P.search_turn_duration + 2 * DT)
+    assert d.outcome is Outcome.OBJECT_NOT_FOUND and d.reason.endswith("frames); blue in 5 of 9 frames searched"), d.reason
+    assert calls == [1]
+
+
 def test_object_lost_says_when_the_object_colour_filled_the_frames():
+    """... and not the note on other colours: an object lost was seen (its colour is right)."""
     mission, t = active_mission()
+    mission.object_note = lambda: "blue in 5 of 9 frames searched"
     mission.on_frame(t + 0.1, object_seen=False, landmark_fix=True, localized=True, flooded=True)
     _, d = run_until(mission, t, t + P.object_lost_timeout + 1.0)
-    assert d.outcome is Outcome.OBJECT_LOST and "filled 1 frames" in d.reason
+    assert d.outcome is Outcome.OBJECT_LOST and "filled 1 frames" in d.reason and "blue" not in d.reason
 
 
 def test_frames_turned_away_from_the_object_do_not_count_towards_losing_it():

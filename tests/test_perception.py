@@ -15,6 +15,7 @@ from agent import perception
 from agent.camera import CameraModel, optical_axis_heading
 from agent.perception import (
     ColorClass,
+    ColourTally,
     ImageError,
     PerceptionParams,
     extract_silhouette,
@@ -365,3 +366,25 @@ def test_cleaning_in_the_masks_bounding_box_equals_full_frame_morphology(params)
         if p.close_radius:
             full = cv2.morphologyEx(full, cv2.MORPH_CLOSE, _disc(p.close_radius))
         assert np.array_equal(clean_mask(mask, p), full)
+
+
+def test_a_tally_names_the_free_colour_classes_that_filled_silhouettes_where_the_object_s_did_not(params):
+    """``ColourTally``: every ``every``-th frame it is given, the classes neither the object's nor a
+    ball's of the map are searched; a blue box in every frame (and a green one, the map's balls' colour)
+    is named after ``min_frames`` searched frames, green never; frames of the bare floor add nothing."""
+    floor = np.full((240, 320, 3), (120, 130, 140), np.uint8)
+    frame = floor.copy()
+    cv2.rectangle(frame, (40, 60), (80, 140), (200, 80, 30), -1)  # blue (BGR)
+    cv2.rectangle(frame, (200, 60), (240, 140), (40, 200, 40), -1)  # green
+    assert extract_silhouette(frame, params, color="blue") is not None and extract_silhouette(frame, params, color="green") is not None
+    tally = ColourTally(params, taken={"green"}, every=2)
+    assert "green" not in tally.free and params.object_color not in tally.free
+    for first, second in [(floor, frame)] * 2 + [(frame, floor)] * 2:  # searched: the 2nd, 4th, 6th and 8th
+        tally.look(first)
+        tally.look(second)
+    assert tally.note() == ""  # blue in 2 of the 4 searched frames, fewer than min_frames
+    tally.look(floor)
+    tally.look(frame)
+    note = tally.note()
+    assert note.startswith(f"silhouettes of other colour classes were seen where none of {params.object_color} was (blue in 3 of 5")
+    assert "green" not in note

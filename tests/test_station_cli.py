@@ -180,20 +180,22 @@ def test_doctor_on_the_simulated_nao(tmp_path):
     result = subprocess.run([sys.executable, "-m", "station.cli", "doctor", "--robot", "sim", "--seconds", "2"],
                             capture_output=True, text=True, timeout=300, cwd=tmp_path)
     lines = {line.split()[1].rstrip(":"): line.split()[0] for line in result.stdout.splitlines() if line[:4] in ("PASS", "FAIL")}
-    for name in ("bridge", "camera", "clock", "battery", "fallen", "watchdog"):
+    for name in ("bridge", "camera", "clock", "battery", "fallen", "watchdog", "object"):  # the can starts in view
         assert lines.get(name) == "PASS", result.stdout
     assert "landmarks" in lines and "Traceback" not in result.stderr
     assert result.returncode == (0 if lines["landmarks"] == "PASS" else 1)
 
 
-def test_doctor_names_the_markers_in_view_that_the_map_does_not_hold(tmp_path):
+def test_doctor_names_the_markers_and_the_colours_in_view_that_the_configuration_does_not_hold(tmp_path):
     """The simulated NAO starts with boards 18-22 of its room in view (the map's own gives a fix there); a map
     numbering the room's 24 boards 24-47 fails the landmark line, which names the ids seen (all of 0-23) and the
-    map's dictionary (agent/localization.py ``LandmarkDetector.diagnosis``)."""
+    map's dictionary (agent/localization.py ``LandmarkDetector.diagnosis``). The red can is in view too: told
+    the object is blue, the object line fails naming red first, the largest (the map has no balls here, so
+their colours are named too; station/doctor.py ``object_check``)."""
     rows = [line for line in (CONFIG_DIR / "landmarks" / "sim_room.yaml").read_text().splitlines() if "kind: aruco" in line]
     shifted = [row.replace(f"{{id: {k}, ", f"{{id: {k + 24}, ", 1) for k, row in enumerate(rows)]
     (tmp_path / "wrong.yaml").write_text("landmarks:\n" + "\n".join(shifted) + "\nposition_sigma: 0.0\nyaw_sigma: 0.0\n")
-    (tmp_path / "doctor.yaml").write_text(f"station:\n  landmark_map: {tmp_path / 'wrong.yaml'}\n")
+    (tmp_path / "doctor.yaml").write_text(f"station:\n  landmark_map: {tmp_path / 'wrong.yaml'}\nperception:\n  object_color: blue\n")
     result = subprocess.run([sys.executable, "-m", "station.cli", "doctor", "--robot", "sim", "--seconds", "2", "--config",
                              str(tmp_path / "doctor.yaml")], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     line = next(line for line in result.stdout.splitlines() if "landmarks visible" in line)
@@ -201,6 +203,8 @@ def test_doctor_names_the_markers_in_view_that_the_map_does_not_hold(tmp_path):
     assert "ArUco markers the map does not hold were seen (DICT_4X4_50 ids " in line and "the map's: DICT_4X4_50" in line, line
     ids = line.split("DICT_4X4_50 ids ", 1)[1].split(";", 1)[0].replace(", ...", "").split(", ")
     assert ids and {int(i) for i in ids} <= set(range(24))
+    line = next(line for line in result.stdout.splitlines() if "object in view" in line)
+    assert line.startswith("FAIL") and "no blue silhouette; in view: red (" in line and "perception.object_color" in line, line
 
 
 def test_capture_from_the_simulated_nao(tmp_path):

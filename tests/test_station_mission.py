@@ -418,6 +418,25 @@ def test_a_map_with_the_wrong_ids_ends_landmarks_lost_naming_the_markers_seen(si
     assert {int(i) for i in seen.replace(", ...", "").split(", ")} <= set(range(24))
 
 
+def test_an_object_of_another_colour_than_configured_ends_object_not_found_naming_its_colour(sim_bridge, tmp_path):
+    """The simulated room's can is red; a station told the object is blue (a class none of the room's
+    balls has) never sees it, ends 'object_not_found' after its search, and its reason names red as the
+    colour class whose silhouettes the frames showed (agent/perception.py ``ColourTally``); the robot
+    ends stopped."""
+    bridge, port = sim_bridge
+    override = write_override(tmp_path / "station.yaml", port, standstill=False, search_max_turns=0.2, search_dwell=0.3)
+    override.write_text(override.read_text() + "perception:\n  object_color: blue\n")
+    proc = station("start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"), "--config", str(override), stderr=tmp_path / "err")
+    try:
+        result = finish(tmp_path, proc, "object_not_found")
+    finally:
+        proc.kill()
+    assert result["reason"].startswith("object not seen in a head scan"), result["reason"]
+    note = result["reason"].split("silhouettes of other colour classes were seen where none of blue was (", 1)[1]
+    assert note.startswith("red in ") and "set perception.object_color" in note, result["reason"]
+    assert not bridge.world.is_walking()
+
+
 @SLOW
 def test_object_never_seen_is_object_not_found(sim_bridge, tmp_path):
     bridge, port = sim_bridge
