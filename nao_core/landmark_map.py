@@ -15,7 +15,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Tuple, Union
+from typing import FrozenSet, Literal, Optional, Tuple, Union
 
 import numpy as np
 
@@ -83,6 +83,11 @@ class LandmarkMap:
 
     def of_kind(self, kind: str) -> Tuple[Landmark, ...]:
         return tuple(lm for lm in self.landmarks if lm.kind == kind)
+
+    @property
+    def ball_colors(self) -> FrozenSet[str]:
+        """The colour classes of its balls."""
+        return frozenset(lm.color for lm in self.of_kind("color"))
 
 
 def load_landmark_map(path: Union[str, Path]) -> LandmarkMap:

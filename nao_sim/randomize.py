@@ -264,7 +264,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
         layout_name, landmark_path = f"drawn {drawn.kind}{', one wall' if one_wall_only else ''}", layout_file(drawn)
         config = config.with_layout(str(landmark_path), drawn.half_size)
     scenario = dataclasses.replace(scenario, finish=(float(rng.uniform(*r.object_gloss)), float(rng.uniform(*r.object_shininess))))
-    balls = {lm.color for lm in load_landmark_map(landmark_path).of_kind("color")}
+    balls = load_landmark_map(landmark_path).ball_colors
     names = sorted(r.object_colors)
     first = int(rng.integers(len(names)))  # then the next one no ball has: another map repaints only where a ball took it
     object_color = next((name for name in names[first:] + names[:first] if name not in balls), None)

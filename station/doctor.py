@@ -140,7 +140,7 @@ def object_check(config: StationConfig, image: np.ndarray) -> Check:
     silhouette = extract_silhouette(image, perception)
     if silhouette is not None:
         return Check("object in view", True, f"a {perception.object_color} silhouette of {silhouette.area} px", "")
-    areas = {c: largest_area(image, perception, c) for c in free_classes(perception, {lm.color for lm in config.landmarks.of_kind("color")})}
+    areas = {c: largest_area(image, perception, c) for c in free_classes(perception, config.landmarks.ball_colors)}
     seen = ", ".join(f"{c} ({a} px)" for c, a in sorted(areas.items(), key=lambda item: -item[1]) if a)
     return Check("object in view", False, f"no {perception.object_color} silhouette" + (f"; in view: {seen}" if seen else ""),
                  f"put the object a metre in front of the robot; if it is not {perception.object_color}, set "

@@ -285,7 +285,7 @@ class Pilot:
         self.coverage = Coverage(config.planner.coverage, self.camera.hfov)
         self.localizer = RobotLocalizer(config.localization, config.landmarks, self.camera, config.perception)
         self.mission.landmark_note = self.localizer.detector.diagnosis  # read only when a reason needs it
-        self.colours = ColourTally(config.perception, {lm.color for lm in config.landmarks.of_kind("color")})
+        self.colours = ColourTally(config.perception, config.landmarks.ball_colors)
         self.mission.object_note = self.colours.note
         self.keep_in = KeepIn(config.landmarks)  # the walls the map shows (agent/keep_in.py)
         self.landmark_reach = LandmarkReach.from_map(config.landmarks, float(self.camera.K[0, 0]),

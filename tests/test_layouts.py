@@ -85,7 +85,7 @@ def test_a_drawn_layout_is_a_landmark_file_that_reads_back_the_same_under_one_na
 def _painted_as(world, other):
     """``world`` with ``other``'s object paint (the same seed, another map), which they may differ in
     only where a ball of one map has the other's paint (nao_sim/randomize.py)."""
-    balls = [{lm.color for lm in load_landmark_map(w.landmark_path).of_kind("color")} for w in (world, other)]
+    balls = [load_landmark_map(w.landmark_path).ball_colors for w in (world, other)]
     if world.object_color != other.object_color:
         assert other.object_color in balls[0] or world.object_color in balls[1], (world.seed, other.object_color)
     scenario = dataclasses.replace(world.scenario, color=other.scenario.color)

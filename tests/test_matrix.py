@@ -182,7 +182,7 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
         assert looks.floor_color in r.floor_colors and looks.wall_color in r.wall_colors
         assert math.sin(r.light_elevation[0]) - 1e-9 <= looks.light[2] <= math.sin(r.light_elevation[1]) + 1e-9
         assert math.hypot(*looks.light) == pytest.approx(1.0) and r.ambient[0] <= looks.ambient <= r.ambient[1]
-        balls = {lm.color for lm in load_landmark_map(s.landmark_path).of_kind("color")}
+        balls = load_landmark_map(s.landmark_path).ball_colors
         assert s.object_color not in balls and s.scenario.color == tuple(r.object_colors[s.object_color])
         assert s.config.scenarios[s.object_name] == s.scenario  # what the simulator renders
     assert {s.object_color for s in specs} == set(r.object_colors)
