@@ -333,10 +333,12 @@ class Mission:
     def _object_notes(self, colours: bool = True) -> str:
         """What the frames showed instead of the object: its colour flooding them, and (``colours``: an object
         never seen) other colours' silhouettes."""
-        notes = [self.object_note() if colours else ""]
+        notes = []
         if self.flooded_frames:
-            notes.insert(0, f"the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall "
-                            f"or something large has its colour (docs/perception.md, \"Colours\")")
+            notes.append(f"the object's colour filled {self.flooded_frames} frames from side to side: the floor, a wall "
+                         f"or something large has its colour (docs/perception.md, \"Colours\")")
+        if colours:
+            notes.append(self.object_note())
         return "".join(f"; {note}" for note in notes if note)
 
     @property

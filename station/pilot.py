@@ -460,7 +460,7 @@ class Pilot:
         with guarded("perception"):
             predicted = self._predicted_pixel(T_WC)
             silhouette = extract_silhouette(image, self.config.perception, predicted)
-            if silhouette is None:
+            if silhouette is None and self.mission.phase in (Phase.INIT, Phase.SEARCH):  # only an object never seen is named
                 self.colours.look(image)
             flooded = silhouette is not None and silhouette.spans_image
             measurement = None if silhouette is None or flooded else measure_object(silhouette, self.camera, T_WC,
