@@ -4,8 +4,8 @@ The bridge calls a backend from several threads (camera loop, command handling, 
 state publisher): implementations must be thread-safe, and ``stop_walking`` must return
 promptly even while another thread is blocked in ``grab_frame``.
 
-All times are the bridge machine's clock (``time.time()``, seconds): a backend that reads
-timestamps in another clock (NAOqi's images carry the robot's clock) converts them.
+All times are the bridge machine's clock (``nao_core.clock.now()``, s: wall time that never jumps):
+a backend that reads timestamps in another clock (NAOqi's images carry the robot's clock) converts them.
 Camera poses are in the optical convention (``nao_core.robot_model``).
 """
 

@@ -31,8 +31,8 @@ another colour space than asked are decoded when it is RGB (11), YUV (10) or lum
 images of another size than subscribed, with the same aspect, are resized to it (one warning);
 another aspect drops the frame with an error naming both sizes.
 
-Clocks. Image stamps are the robot's clock; the bridge's is ``time.time()``. The offset between
-them is measured two ways:
+Clocks. Image stamps are the robot's clock; the bridge's is ``nao_core.clock.now()`` (wall time
+that never jumps). The offset between them is measured two ways:
 
 * Probe (preferred): the sampler writes a counter to ALMemory (``CLOCK_PROBE_KEY``) between bridge
   times t0 and t1 and reads the robot's stamp s of that write with ``ALMemory.getTimestamp``. The
@@ -102,6 +102,7 @@ from nao_bridge.backend import RobotBackend
 from nao_bridge.camera_latency import LEARNT_STD, LatencyEstimator, camera_heading
 from nao_bridge.capture_kinematics import KinematicSample, KinematicsHistory
 from nao_bridge.watchdog import HEARTBEAT_KEY, WATCHDOG_KEY
+from nao_core.clock import now
 from nao_core.config import bounds
 from nao_core.naoqi_api import (
     BATTERY_KEY,
@@ -339,11 +340,11 @@ class NaoqiBackend(RobotBackend):
     def _sample_kinematics(self) -> None:
         """One sample of head angles, camera transform and odometry, stamped mid-way through the reads."""
         sensors = self.params.use_sensors
-        before = time.time()
+        before = now()
         yaw, pitch = self.motion.getAngles(HEAD_JOINTS, sensors)
         T_nao = np.asarray(self.motion.getTransform("CameraTop", FRAME_ROBOT, sensors), float).reshape(4, 4)
         odom = self.motion.getRobotPosition(sensors)
-        after = time.time()
+        after = now()
         values = np.concatenate([[yaw, pitch], T_nao.ravel(), np.asarray(odom, float)[:3]])
         if not np.isfinite(values).all():
             raise ValueError(f"non-finite reading: head {yaw}, {pitch}, odometry {odom}, camera transform {T_nao.tolist()}")
@@ -359,9 +360,9 @@ class NaoqiBackend(RobotBackend):
         self._next_probe = time.monotonic() + 1.0 / self.params.clock_probe_rate
         self._probe_count += 1
         try:
-            sent = time.time()
+            sent = now()
             self.memory.insertData(CLOCK_PROBE_KEY, self._probe_count)
-            answered = time.time()
+            answered = now()
             value, seconds, micros = self.memory.getTimestamp(CLOCK_PROBE_KEY)
         except Exception as exc:  # noqa: BLE001 - an ALMemory without insertData or getTimestamp: the camera bound alone
             self._next_probe = math.inf
@@ -405,7 +406,7 @@ class NaoqiBackend(RobotBackend):
         poll = 0.25 / max(self.fps, 1.0)
         while True:
             image = self.video.getImageRemote(self._camera)
-            received = time.time()
+            received = now()
             if image and len(image) >= 7:
                 robot_stamp = (int(image[4]), int(image[5]))
                 if robot_stamp != self._last_stamp:
@@ -562,7 +563,7 @@ class NaoqiBackend(RobotBackend):
         charge = self._read_memory(BATTERY_KEY)
         battery = float(charge) if isinstance(charge, (int, float)) and math.isfinite(charge) else None
         return RobotState(
-            stamp=time.time(),
+            stamp=now(),
             odom=(float(odom[0]), float(odom[1]), float(odom[2])),
             head_yaw=float(yaw),
             head_pitch=float(pitch),

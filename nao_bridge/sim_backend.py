@@ -1,17 +1,17 @@
 """SimBackend: the simulated NAO behind the bridge's ``RobotBackend`` interface.
 
-Frames are paced at ``fps`` on the world's clock: ``grab_frame`` waits for the next frame slot
-(t_k = t_0 + k / fps, skipping slots already past, as a camera does) and renders it. ``close``
-wakes a waiting ``grab_frame`` at once.
+Frames are paced at ``fps`` on the process clock (``nao_core.clock.now``, the world's default):
+``grab_frame`` waits for the next frame slot (t_k = t_0 + k / fps, skipping slots already past, as
+a camera does) and renders it. ``close`` wakes a waiting ``grab_frame`` at once.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from typing import Optional
 
 from nao_bridge.backend import RobotBackend
+from nao_core.clock import now
 from nao_core.records import CameraFrame, RobotState
 from nao_core.robot_model import RobotModel
 from nao_sim.world import SimWorld
@@ -35,7 +35,7 @@ class SimBackend(RobotBackend):
 
     def start(self) -> None:
         self._closed.clear()
-        self._next_slot = time.time()
+        self._next_slot = now()
 
     def close(self) -> None:
         if not self._closed.is_set():
@@ -46,12 +46,12 @@ class SimBackend(RobotBackend):
         with self._grab_lock:
             if self._closed.is_set():
                 return None
-            now = time.time()
+            t = now()
             if self._next_slot is None:
-                self._next_slot = now
-            if self._next_slot < now - self.period:  # slots missed: skip to the next one
-                self._next_slot += self.period * int((now - self._next_slot) / self.period)
-            wait = self._next_slot - now
+                self._next_slot = t
+            if self._next_slot < t - self.period:  # slots missed: skip to the next one
+                self._next_slot += self.period * int((t - self._next_slot) / self.period)
+            wait = self._next_slot - t
             if wait > timeout:
                 self._closed.wait(timeout)
                 return None

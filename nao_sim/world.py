@@ -1,8 +1,8 @@
 """The simulated NAO in its room: body and head dynamics, odometry, fall, battery, camera, truth.
 
-Time is the real clock (``clock()``, default ``time.time``). The world advances lazily, under a
-lock, on every call, in fixed steps of ``dt`` (so a run is a function of the seed and of the command
-timeline alone, not of how often it is queried). One step:
+Time is the real clock (``clock()``, default ``nao_core.clock.now``: wall time that never jumps).
+The world advances lazily, under a lock, on every call, in fixed steps of ``dt`` (so a run is a
+function of the seed and of the command timeline alone, not of how often it is queried). One step:
 
 * walking velocity u = (v, vy, omega), first-order lag towards the (clamped) command c::
 
@@ -49,6 +49,7 @@ from typing import Callable, Deque, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
+from nao_core.clock import now
 from nao_core.geometry import Pose, planar_transform, rot_x, rot_y, wrap_angle
 from nao_core.landmark_map import load_landmark_map
 from nao_core.records import CameraFrame, RobotState
@@ -103,7 +104,7 @@ class SimWorld:
         resolution: str = "qvga",
         seed: int = 0,
         config: Optional[SimConfig] = None,
-        clock: Callable[[], float] = time.time,
+        clock: Callable[[], float] = now,
     ):
         self.config = config or load_sim_config()
         self.scenario_name = scenario if isinstance(scenario, str) else "custom"

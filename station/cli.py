@@ -33,7 +33,6 @@ import json
 import logging
 import signal
 import sys
-import time
 from importlib import metadata
 from pathlib import Path
 from typing import Iterator, List, Optional, Tuple
@@ -41,6 +40,7 @@ from typing import Iterator, List, Optional, Tuple
 import yaml
 
 from agent.mesh import save_mesh
+from nao_core.clock import now
 from nao_core.config import CONFIG_DIR, ConfigError, main_error, read_yaml
 from nao_core.protocol import Info
 from nao_core.robot_model import load_robot_model
@@ -300,7 +300,7 @@ def _mission(args: argparse.Namespace, config: StationConfig, resolution: str, o
         with connected(args, config, out, timeout) as (link, info, info_bytes, bridge):
             if bridge is not None:  # its exit ends the mission at once (the loop sees the bridge lost)
                 bridge.watch(lambda code: (died.append(code), link.inbox.put(
-                    Received("bridge_lost", time.time(), f"the bridge process exited with code {code}".encode()))))
+                    Received("bridge_lost", now(), f"the bridge process exited with code {code}".encode()))))
             link.start()
             if args.resolution and info.resolution != args.resolution:
                 log.warning("--resolution %s ignored: the bridge runs %s", args.resolution, info.resolution)

@@ -28,6 +28,7 @@ from typing import List, Optional, Tuple
 
 import zenoh
 
+from nao_core.clock import now
 from nao_core.protocol import (
     HeadCommand,
     Info,
@@ -186,10 +187,10 @@ class BridgeLink:
         return self._seq
 
     def _put(self, kind: str, sample: zenoh.Sample) -> None:
-        self.inbox.put(Received(kind, time.time(), sample.payload.to_bytes()))
+        self.inbox.put(Received(kind, now(), sample.payload.to_bytes()))
 
     def _on_state(self, sample: zenoh.Sample) -> None:
-        received = Received("state", time.time(), sample.payload.to_bytes())
+        received = Received("state", now(), sample.payload.to_bytes())
         self.inbox.put(received)
         try:
             watchdog = decode(received.payload, State).watchdog
@@ -211,9 +212,9 @@ class BridgeLink:
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         with self._frame_lock:
-            self._frames.append(Received("frame", time.time(), sample.payload.to_bytes()))
-        self.inbox.put(Received("frame", time.time()))  # wakes the loop; the bytes are in the mailbox
+            self._frames.append(Received("frame", now(), sample.payload.to_bytes()))
+        self.inbox.put(Received("frame", now()))  # wakes the loop; the bytes are in the mailbox
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            self.inbox.put(Received("bridge_lost", time.time()))
+            self.inbox.put(Received("bridge_lost", now()))

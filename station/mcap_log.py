@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,8 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
+
+from nao_core.clock import now
 
 JsonPayload = Union[bytes, Dict[str, Any]]
 
@@ -56,9 +57,9 @@ class LogSink(Protocol):
 
 
 class McapLog:
-    """Append-only run log. ``t`` arguments are station-clock seconds (``time.time()``)."""
+    """Append-only run log. ``t`` arguments are station-clock seconds (``nao_core.clock.now()``)."""
 
-    def __init__(self, path: Union[str, Path], flush_interval: float = 1.0, clock: Callable[[], float] = time.time,
+    def __init__(self, path: Union[str, Path], flush_interval: float = 1.0, clock: Callable[[], float] = now,
                  sinks: Sequence[LogSink] = ()):
         self.path = Path(path)
         self._file = open(self.path, "wb")

@@ -29,7 +29,6 @@ import dataclasses
 import logging
 import queue
 import sys
-import time
 import traceback
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Tuple
@@ -38,6 +37,7 @@ import numpy as np
 
 from agent.mesh import Z_UP_TO_Y_UP
 from agent.mission import Outcome, Phase
+from nao_core.clock import now
 from nao_core.geometry import invert, planar_transform
 from nao_core.protocol import (
     Frame,
@@ -107,7 +107,7 @@ class RunSummary:
 
 class ControlLoop:
     def __init__(self, config: StationConfig, link: BridgeLink, info: Info, info_bytes: bytes, log: McapLog,
-                 interrupted: Callable[[], Optional[str]], clock: Callable[[], float] = time.time):
+                 interrupted: Callable[[], Optional[str]], clock: Callable[[], float] = now):
         self.config = config
         self.link = link
         self.info = info

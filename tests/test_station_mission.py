@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -393,6 +394,39 @@ def test_failure_mid_mission_stops_robot_and_says_why(sim_bridge, tmp_path, even
         assert not bridge.world.is_walking()
     if event.startswith("SIG"):
         assert result["reason"] == f"interrupted by {event}"
+
+
+def test_the_station_s_wall_clock_stepped_an_hour_either_way_mid_mission_changes_nothing(sim_bridge, tmp_path):
+    """The station PC's wall clock stepped +1 h, then back 2 h (an NTP step, a hand-set ``date``) while
+    the robot walks: the station times everything on ``nao_core.clock.now`` (wall time read once, then
+    the monotonic clock), so no mission timer fires (+1 h was past ``max_duration``: 'time_limit'), the
+    control ticks never pause (-1 h stopped them for an hour: the robot stood, the mission stalled),
+    and the log's times run on without a gap. SIGTERM then ends the mission as usual."""
+    bridge, port = sim_bridge
+    offset = tmp_path / "clock_offset"
+    offset.write_text("0")
+    override = write_override(tmp_path / "station.yaml", port, standstill=False)
+    env = dict(os.environ, CLOCK_OFFSET_FILE=str(offset),
+               PYTHONPATH=os.pathsep.join([str(Path(__file__).parent / "clock_jump"), os.environ.get("PYTHONPATH", "")]))
+    err = tmp_path / "err"
+    proc = subprocess.Popen([PY, "-m", "station.cli", "start", "--robot", "127.0.0.1", "--out", str(tmp_path / "run"),
+                             "--config", str(override)], stdout=subprocess.PIPE, stderr=open(err, "wb"), env=env)
+    try:
+        assert wait_for_text(err, "phase active", 60.0), err.read_text()[-2000:]
+        for seconds in ("3600", "-3600"):
+            offset.write_text(seconds)
+            time.sleep(3.0)
+        proc.send_signal(signal.SIGTERM)
+        result = finish(tmp_path, proc, "interrupted")
+    finally:
+        proc.kill()
+    assert result["reason"] == "interrupted by SIGTERM"
+    messages = read_clean(tmp_path / "run" / "run.mcap")
+    walks = [m.t for m in messages if m.topic == CMD_WALK]
+    since = [t for t in walks if t >= walks[-1] - 7.0]  # the 6 s stepped, and the stop
+    assert len(since) >= 30 and max(np.diff(since)) < 1.0, np.diff(since).max()
+    assert abs(time.time() - walks[-1]) < 60.0  # the log's clock is the wall clock the station started with
+    assert not bridge.world.is_walking()
 
 
 def test_a_map_with_the_wrong_ids_ends_landmarks_lost_naming_the_markers_seen(sim_bridge, tmp_path):

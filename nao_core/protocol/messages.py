@@ -148,7 +148,7 @@ class State:
     """The robot's state, published by the bridge at 10-50 Hz."""
 
     TYPE: ClassVar[str] = "state"
-    stamp: float = field(metadata=bounds(0.0))  # bridge clock (time.time()), s
+    stamp: float = field(metadata=bounds(0.0))  # bridge clock (nao_core.clock.now()), s
     odom: Pose2  # odometry pose (x, y, theta), m, rad
     head_yaw: float
     head_pitch: float
