@@ -75,11 +75,24 @@ class CameraSpec:
     resolutions: Dict[str, CameraIntrinsics]
     offset: Tuple[float, float, float] = field(metadata=bounds(-0.5, 0.5))  # from the head pitch joint, m
     tilt: float = field(metadata=bounds(-1.0, 1.0))  # extra pitch of the optical axis, rad (down > 0)
+    # the tone curve: a pixel reads 255 (L / 255)^gamma of its light L (docs/frames.md); 1: linear
+    response_gamma: float = field(metadata=bounds(0.2, 3.0))
+
+    def to_linear(self) -> Optional[np.ndarray]:
+        """Pixel value -> its light (a ``cv2.LUT`` table), None for a linear camera (docs/frames.md)."""
+        return None if self.response_gamma == 1.0 else tone_curve(1.0 / self.response_gamma)
 
     def intrinsics(self, resolution: str) -> CameraIntrinsics:
         if resolution not in self.resolutions:
             raise KeyError(f"camera {self.sensor!r} has no resolution {resolution!r}; known: {sorted(self.resolutions)}")
         return self.resolutions[resolution]
+
+
+def tone_curve(gamma: float, dtype: type = np.uint8) -> np.ndarray:
+    """The 256-entry table v -> 255 (v / 255)^gamma (``cv2.LUT``): a camera's tone curve with the
+    gamma of its response (docs/frames.md, "The camera's tone curve"), its inverse with 1 / gamma."""
+    table = 255.0 * (np.arange(256) / 255.0) ** gamma
+    return np.round(table).astype(np.uint8) if dtype is np.uint8 else table.astype(dtype)
 
 
 def head_at(head: Tuple[float, float], target: Tuple[float, float], tolerance: float) -> bool:

@@ -28,6 +28,8 @@ build (``config/sim.yaml`` ``randomizer`` section holds every range):
   the reported camera transform omits (agent/camera_tilt.py learns them);
 * the shutter: an exposure time U(``shutter``) over which the camera's rotation blurs the frame
   (docs/simulator.md, "The camera image");
+* the camera's tone curve: a gamma U(``response_gamma``) (nao_sim/render.py), from
+  ``default_rng([seed, 4])`` (so the other draws stay), told the station as a calibration finds it;
 * drawn last, the room's looks: a floor and a wall paint from ``floor_colors`` and ``wall_colors``
   (colours of real rooms that none of the perception's colour classes takes), and the light from
   an azimuth U(-pi, pi) at an elevation U(``light_elevation``) above the horizon, with an ambient
@@ -91,6 +93,7 @@ class Randomizer:
     mount_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # rad, largest |roll| and |pitch| of the camera on its mount
     shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
     lens_distortion: Tuple[float, float, float] = field(metadata=bounds(0.0, 0.3))  # largest |k1|, |k2|, |p1| and |p2|
+    response_gamma: Tuple[float, float] = field(metadata=bounds(0.2, 3.0))  # the camera's tone curve (nao_sim/render.py)
     map_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.5))  # the station's map measured off: m per axis, rad of facing (1 sigma)
     map_error_told: bool  # the station's map says how well it is measured (its position_sigma, yaw_sigma)
     floor_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))  # BGR paints to draw from
@@ -155,12 +158,14 @@ class WorldSpec:
 
     def station_overrides(self) -> Dict[str, object]:
         """The station's ``robot`` section for this world: the configured camera with the true lens's
-        distortion, as ``station calibrate`` finds it (the focal lengths and principal point stay
-        the configured ones: the calibration error the self-calibration corrects)."""
-        if not any(self.lens):
-            return {}
-        resolutions = {name: {"dist": list(self.lens)} for name in self.robot.camera.resolutions}
-        return {"robot": {"camera": {"resolutions": resolutions}}}
+        distortion and tone curve, as ``station calibrate`` finds them (the focal lengths and principal
+        point stay the configured ones: the calibration error the self-calibration corrects)."""
+        camera: Dict[str, object] = {}
+        if any(self.lens):
+            camera["resolutions"] = {name: {"dist": list(self.lens)} for name in self.robot.camera.resolutions}
+        if self.config.noise.response_gamma != 1.0:
+            camera["response_gamma"] = self.config.noise.response_gamma
+        return {"robot": {"camera": camera}} if camera else {}
 
     def station_map(self) -> str:
         """The landmark file the station is given: the world's, or with ``map_error`` each landmark moved by
@@ -175,7 +180,8 @@ class WorldSpec:
 
     def station_robot(self) -> RobotModel:
         """The configured robot model (NAO V6) as the station holds it in this world (``station_overrides``)."""
-        return load_robot_model().with_lens(self.lens)
+        robot = load_robot_model().with_lens(self.lens)
+        return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, response_gamma=self.config.noise.response_gamma))
 
     def summary(self) -> Dict[str, object]:
         dyn, noise = self.config.dynamics, self.config.noise
@@ -190,7 +196,7 @@ class WorldSpec:
                 "shutter_ms": round(1e3 * noise.shutter, 1), "floor_color": list(self.config.room.floor_color),
                 "wall_color": list(self.config.room.wall_color), "light": [round(x, 2) for x in self.config.room.light],
                 "ambient": round(self.config.room.ambient, 2), "object_finish": [round(x, 2) for x in self.scenario.finish or ()],
-                "lens": [round(x, 4) for x in self.lens[:4]]}
+                "lens": [round(x, 4) for x in self.lens[:4]], "response_gamma": round(noise.response_gamma, 3)}
 
 
 def _bearing(pose: Pose, target: Tuple[float, float]) -> float:
@@ -271,7 +277,9 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     if object_color is None:
         raise ValueError(f"randomizer: every object colour {names} is a ball's in {landmark_path}")
     scenario = dataclasses.replace(scenario, color=tuple(int(c) for c in r.object_colors[object_color]))
-    config = dataclasses.replace(config, scenarios={object_name: scenario})
+    gamma = float(np.random.default_rng([seed, 4]).uniform(*r.response_gamma))  # its own draw: the others stay
+    config = dataclasses.replace(config, scenarios={object_name: scenario},
+                                 noise=dataclasses.replace(config.noise, response_gamma=gamma))
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,
                      object_color, tuple(float(e) for e in r.map_error), r.map_error_told)
 

@@ -57,7 +57,10 @@ marker corners found 0.13 px from their projection at the median without a lens,
 through k1 = +-0.12 bicubic, 0.24 / 0.20 px bilinear (Lanczos: 0.17 / 0.14 px at six times the cost).
 
 Finally the sensor: a Gaussian optical blur of ``blur_sigma`` px at VGA (scaled to the resolution),
-the scene's ``exposure`` times a per-frame gain jitter, and Gaussian pixel noise (a seeded pool).
+the scene's ``exposure`` times a per-frame gain jitter, the camera's tone curve (a pixel of light L
+in 0-255 reads 255 (L / 255)^``response_gamma``, as a camera's image processor encodes it: about
+0.45 for sRGB, 1 linear; after the blur and the anti-aliasing, which mix light, not pixel values),
+and Gaussian pixel noise (a seeded pool).
 """
 
 from __future__ import annotations
@@ -70,7 +73,7 @@ import cv2
 import numpy as np
 
 from nao_core.landmark_map import Landmark, LandmarkMap
-from nao_core.robot_model import CameraIntrinsics
+from nao_core.robot_model import CameraIntrinsics, tone_curve
 from nao_sim.scenarios import Room, Scenario
 
 NEAR = 0.02  # m, near clipping plane
@@ -564,8 +567,10 @@ class Renderer:
         seed: int,
         blur_sigma: float = 0.0,
         exposure: float = 1.0,
+        response_gamma: float = 1.0,
     ):
-        """``blur_sigma``: optical blur, px at 640 px wide; ``exposure``: mean brightness factor."""
+        """``blur_sigma``: optical blur, px at 640 px wide; ``exposure``: mean brightness factor;
+        ``response_gamma``: the tone curve (module docstring)."""
         self.intrinsics = intrinsics
         self.room = room
         self._canvas = Canvas.of(intrinsics)
@@ -600,6 +605,7 @@ class Renderer:
         self._seed = seed
         self._blur = blur_sigma * w / 640.0
         self._exposure = exposure
+        self._tone = None if response_gamma == 1.0 else tone_curve(response_gamma)
 
     def background(self, T_WC: np.ndarray) -> np.ndarray:
         """Floor, walls and ceiling seen from T_WC (H x W x 3 BGR)."""
@@ -656,13 +662,15 @@ class Renderer:
         return np.clip(total / n + 0.5, 0, 255).astype(np.uint8)
 
     def _sensor(self, image: np.ndarray, frame_index: int) -> np.ndarray:
-        """Optical blur, exposure and gain jitter, pixel noise."""
+        """Optical blur, exposure and gain jitter, the tone curve, pixel noise."""
         if self._blur > 0.0:
             image = cv2.GaussianBlur(image, (0, 0), self._blur)
         rng = np.random.default_rng((self._seed, frame_index))
         gain = self._exposure * (1.0 + self._gain_sigma * float(rng.standard_normal()))
         if gain != 1.0:
             image = cv2.convertScaleAbs(image, alpha=gain)
+        if self._tone is not None:
+            image = cv2.LUT(image, self._tone)
         if self._pixel_sigma == 0.0:
             return image
         pool = self._noise[int(rng.integers(len(self._noise)))]

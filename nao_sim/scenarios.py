@@ -207,6 +207,7 @@ class Noise:
     exposure: float = field(metadata=bounds(0.1, 3.0))  # mean brightness factor of every frame
     mount_error: Tuple[float, float] = field(metadata=bounds(-0.1, 0.1))  # rad, (roll, pitch) of the camera on its mount, unreported
     shutter: float = field(metadata=bounds(0.0, 0.1))  # s, exposure time: the camera's rotation over it blurs the image
+    response_gamma: float = field(metadata=bounds(0.2, 3.0))  # the camera's tone curve: a pixel is 255 (L / 255)^gamma of its light L
 
     def __post_init__(self) -> None:
         if self.latency[0] > self.latency[1]:

@@ -123,6 +123,7 @@ class SimWorld:
             seed,
             self.config.noise.blur_sigma,
             self.config.noise.exposure,
+            self.config.noise.response_gamma,
         )
         dyn = self.config.dynamics
         self._dyn = dyn

@@ -2,9 +2,11 @@
 
 Per image ``cv2.findChessboardCorners`` + ``cv2.cornerSubPix`` give the inner corners; with the
 board's corner grid X_ij = (i s, j s, 0) (s = square side) ``cv2.calibrateCamera`` minimizes the
-reprojection error over K, the distortion (k1, k2, p1, p2, k3) and one pose per view. The result
-is written in the shape of ``robot.camera.resolutions.<name>`` of config/robots/nao_v6.yaml, so
-it can be passed to the bridge and the station with ``--config``.
+reprojection error over K, the distortion (k1, k2, p1, p2, k3) and one pose per view. The camera's
+tone curve (``robot.camera.response_gamma``) is measured from the squares' edges (agent/tone_curve.py):
+left out, with a warning, when the edges cannot tell it (too sharp, too few, clipped). The result is
+written in the shape of ``robot.camera`` of config/robots/nao_v6.yaml, so it can be passed to the
+bridge and the station with ``--config``.
 
 Usage (images from ``station capture``)::
 
@@ -18,11 +20,13 @@ import logging
 import math
 import sys
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 import yaml
+
+from agent.tone_curve import GAMMA_MAX, GAMMA_MIN, ToneCurveError, tone_gamma
 
 MIN_VIEWS = 5
 log = logging.getLogger("station.calibrate")
@@ -44,22 +48,22 @@ def parse_pattern(text: str) -> Tuple[int, int]:
     return cols, rows
 
 
-def find_corners(path: Path, pattern: Tuple[int, int]) -> Tuple[Optional[np.ndarray], Tuple[int, int]]:
-    """Sub-pixel inner corners of one image (None when the board is not found) and its (width, height)."""
+def find_corners(path: Path, pattern: Tuple[int, int]) -> Tuple[Optional[np.ndarray], np.ndarray]:
+    """Sub-pixel inner corners of one image (None when the board is not found) and the grey image."""
     if not path.is_file():
         raise CalibrationError(f"{path}: no such file")
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise CalibrationError(f"{path}: cannot read it as an image")
     found, corners = cv2.findChessboardCorners(gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-    size = (gray.shape[1], gray.shape[0])
     if not found:
-        return None, size
-    return cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), _SUBPIX_CRITERIA), size
+        return None, gray
+    return cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), _SUBPIX_CRITERIA), gray
 
 
 def calibrate(paths: Sequence[Path], pattern: Tuple[int, int], square: float) -> dict:
-    """Calibrate from image files; returns K, dist, size, rms and the images used and skipped."""
+    """Calibrate from image files; returns K, dist, size, rms, the tone curve (gamma, its standard error,
+    the edges used; or the reason it was not measured) and the images used and skipped."""
     grid = np.zeros((pattern[0] * pattern[1], 3), np.float32)
     grid[:, :2] = np.mgrid[0:pattern[0], 0:pattern[1]].T.reshape(-1, 2) * square
     object_points: List[np.ndarray] = []
@@ -67,8 +71,10 @@ def calibrate(paths: Sequence[Path], pattern: Tuple[int, int], square: float) ->
     used: List[str] = []
     skipped: List[str] = []
     size: Optional[Tuple[int, int]] = None
+    grays: List[np.ndarray] = []
     for path in paths:
-        corners, image_size = find_corners(path, pattern)
+        corners, gray = find_corners(path, pattern)
+        image_size = (gray.shape[1], gray.shape[0])
         if size is not None and image_size != size:
             raise CalibrationError(f"{path}: image is {image_size[0]}x{image_size[1]}, the others {size[0]}x{size[1]}")
         size = image_size
@@ -77,6 +83,7 @@ def calibrate(paths: Sequence[Path], pattern: Tuple[int, int], square: float) ->
             continue
         object_points.append(grid)
         image_points.append(corners)
+        grays.append(gray)
         used.append(str(path))
     if len(used) < MIN_VIEWS:
         raise CalibrationError(
@@ -84,7 +91,13 @@ def calibrate(paths: Sequence[Path], pattern: Tuple[int, int], square: float) ->
         )
     assert size is not None
     rms, K, dist, _, _ = cv2.calibrateCamera(object_points, image_points, size, None, None)
-    return {"K": K, "dist": dist.ravel()[:5], "size": size, "rms": float(rms), "used": used, "skipped": skipped}
+    try:
+        tone: Union[Tuple[float, float, int], str] = tone_gamma(grays, image_points, pattern)
+        if not GAMMA_MIN * 1.01 < tone[0] < GAMMA_MAX / 1.01:
+            tone = f"the edges fit best at the search's bound ({tone[0]:.2f}): too sharp or too clipped to tell"
+    except ToneCurveError as exc:
+        tone = str(exc)
+    return {"K": K, "dist": dist.ravel()[:5], "size": size, "rms": float(rms), "tone": tone, "used": used, "skipped": skipped}
 
 
 def config_yaml(result: dict, resolution: str) -> str:
@@ -100,7 +113,14 @@ def config_yaml(result: dict, resolution: str) -> str:
         f"# station calibrate: {len(result['used'])} views, reprojection RMS {result['rms']:.3f} px\n"
         "# Pass with --config to override the robot model's intrinsics at this resolution.\n"
     )
-    return header + yaml.safe_dump({"robot": {"camera": {"resolutions": {resolution: entry}}}}, sort_keys=False)
+    camera: dict = {"resolutions": {resolution: entry}}
+    tone = result["tone"]
+    if isinstance(tone, str):
+        header += f"# tone curve not measured ({tone}): the camera is taken as linear\n"
+    else:
+        header += f"# tone curve: gamma {tone[0]:.3f} +- {tone[1]:.3f} from {tone[2]} edges (docs/frames.md)\n"
+        camera["response_gamma"] = round(float(tone[0]), 3)
+    return header + yaml.safe_dump({"robot": {"camera": camera}}, sort_keys=False)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -135,5 +155,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for path in result["skipped"]:
         log.warning("calibrate: board not found in %s (skipped)", path)
+    if isinstance(result["tone"], str):
+        log.warning("calibrate: tone curve not measured: %s; response_gamma left out (linear)", result["tone"])
+    else:
+        log.info("calibrate: tone curve gamma %.3f +- %.3f", result["tone"][0], result["tone"][1])
     log.info("calibrate: %d views, RMS %.3f px", len(result["used"]), result["rms"])
     return 0

@@ -2,7 +2,8 @@
 
 The keyframes the run chose (``/agent/keyframe``: frame sequence number, T_WC and the predicted
 object pixel that picked the blob) are carved again from the logged JPEGs: silhouette by the run's
-perception parameters, pose the one the final carve used (``/station/keyframe_poses``,
+perception parameters (in light through the camera's inverse tone curve, as the run read them),
+pose the one the final carve used (``/station/keyframe_poses``,
 agent/pose_smoother.py; logs without it: the keyframe's own), volume around the run's final object
 estimate, the given voxel edge and tolerance (defaults: the run's). With the run's parameters this reproduces the run's model (carving does not depend on the order of views).
 """
@@ -42,6 +43,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
     config = setup.config
     params = config.carving if tolerance is None else dataclasses.replace(config.carving, tolerance=tolerance)
     camera = CameraModel.from_intrinsics(setup.info.intrinsics)
+    to_linear = setup.info.robot.camera.to_linear()  # frames read in light, as the run read them (station/pilot.py)
     wanted: Dict[int, Dict] = {}
     estimate = None
     smoothed: Dict[int, List[float]] = {}  # the final carve's poses (station/run.py), when the run logged them
@@ -66,6 +68,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
             elif seq in wanted:
                 jpeg = message.proto(CompressedImage).data
                 image = cv2.imdecode(np.frombuffer(jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
+                image = image if to_linear is None else cv2.LUT(image, to_linear)
                 keyframe = wanted.pop(seq)
                 predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose

@@ -119,6 +119,8 @@ def robot_checks(config: StationConfig, info, frames: list, states: List[State],
     else:
         checks.append(Check("state", False, "no robot state received", "the bridge cannot read ALMemory: see its log"))
     if image is not None:
+        to_linear = info.robot.camera.to_linear()  # read in light, as the mission reads it (station/pilot.py)
+        image = image if to_linear is None else cv2.LUT(image, to_linear)
         localizer = RobotLocalizer(config.localization, config.landmarks, CameraModel.from_intrinsics(info.intrinsics),
                                    config.perception)
         T_BC = np.asarray(frames[-1][1].meta.T_BC, dtype=float).reshape(4, 4)

@@ -11,6 +11,9 @@ value take the p and 100 - p percentiles, widened by ``margin_sv`` and clipped t
 Usage (images from ``station capture``)::
 
     station pick-colors red frame1.jpg:210,140,40,60 frame2.jpg:90,100,30,30
+
+With a camera whose tone curve is set (``robot.camera.response_gamma``), pass it as ``--gamma``: the
+station matches colours in light, and so must the ranges.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from typing import Optional, Sequence, Tuple
 import cv2
 import numpy as np
 import yaml
+
+from nao_core.robot_model import tone_curve
 
 log = logging.getLogger("station.pick_colors")
 Region = Tuple[Path, Tuple[int, int, int, int]]
@@ -47,8 +52,10 @@ def parse_region(text: str) -> Region:
     return Path(path), (x, y, w, h)
 
 
-def sample_hsv(regions: Sequence[Region]) -> np.ndarray:
-    """HSV pixels (N x 3) of all regions."""
+def sample_hsv(regions: Sequence[Region], gamma: float = 1.0) -> np.ndarray:
+    """HSV pixels (N x 3) of all regions, read in light through the inverse of a tone curve ``gamma``
+    as the station reads frames (docs/frames.md, "The camera's tone curve")."""
+    to_linear = None if gamma == 1.0 else tone_curve(1.0 / gamma)
     samples = []
     for path, (x, y, w, h) in regions:
         if not path.is_file():
@@ -58,7 +65,9 @@ def sample_hsv(regions: Sequence[Region]) -> np.ndarray:
             raise SampleError(f"{path}: cannot read it as an image")
         if x + w > image.shape[1] or y + h > image.shape[0]:
             raise SampleError(f"{path}: region {x},{y},{w},{h} leaves the {image.shape[1]}x{image.shape[0]} image")
-        samples.append(cv2.cvtColor(image[y:y + h, x:x + w], cv2.COLOR_BGR2HSV).reshape(-1, 3))
+        region = image[y:y + h, x:x + w]
+        region = region if to_linear is None else cv2.LUT(region, to_linear)
+        samples.append(cv2.cvtColor(region, cv2.COLOR_BGR2HSV).reshape(-1, 3))
     return np.vstack(samples).astype(float)
 
 
@@ -87,6 +96,13 @@ def percentile(text: str) -> float:
     return value
 
 
+def tone_gamma(text: str) -> float:
+    value = float(text)
+    if not 0.2 <= value <= 3.0:
+        raise argparse.ArgumentTypeError(f"--gamma must be in [0.2, 3], got {text}")
+    return value
+
+
 def margin(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -100,12 +116,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--percentile", type=percentile, default=1.0, help="ignore this percent of outliers at each end")
     parser.add_argument("--margin-h", type=margin, default=3, help="hue margin (OpenCV units, degrees / 2)")
     parser.add_argument("--margin-sv", type=margin, default=20, help="saturation and value margin (0-255)")
+    parser.add_argument("--gamma", type=tone_gamma, default=1.0,
+                        help="the camera's tone curve, robot.camera.response_gamma as `station calibrate` writes it (default 1: linear)")
 
 
 def run(args: argparse.Namespace) -> int:
     """``station pick-colors``: the YAML on stdout and 0, or 2 with one line naming what was wrong."""
     try:
-        ranges = hsv_ranges(sample_hsv(args.regions), args.percentile, args.margin_h, args.margin_sv)
+        ranges = hsv_ranges(sample_hsv(args.regions, args.gamma), args.percentile, args.margin_h, args.margin_sv)
     except (SampleError, OSError, cv2.error) as exc:
         log.error("pick-colors: %s", exc)
         return 2

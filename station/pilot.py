@@ -10,7 +10,8 @@ Per frame (capture time s, head kinematics T_BC and odometry at capture, in the 
 each step guarded: a step that raises drops the frame (``/agent/frame_rejected``: step, error,
 failures in a row; counted in ``dropped``) and the mission counts it (:mod:`agent.mission`)::
 
-    decode:        image = imdecode(JPEG) at the camera's size
+    decode:        image = imdecode(JPEG) at the camera's size, in light through the camera's inverse
+                   tone curve when it has one (docs/frames.md, "The camera's tone curve")
     localization:  localizer.on_frame(...);  pose = localizer.pose_at(odom at capture), or the
                    odometry itself before the first landmark fix (the odometry frame)
     T_WC = T_WB(pose) T_BC;  cam = (C_x, C_y, psi(T_WC))                 camera on the floor plane
@@ -279,6 +280,7 @@ class Pilot:
         self.config = config
         self.robot: RobotModel = info.robot
         self.camera = CameraModel.from_intrinsics(info.intrinsics)
+        self.to_linear = self.robot.camera.to_linear()  # the camera's inverse tone curve: frames are read in light
         self.mission = Mission(config.mission)
         self.ekf = ObjectEKF(config.ekf)
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
@@ -425,6 +427,8 @@ class Pilot:
             image = cv2.imdecode(np.frombuffer(event.frame.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
             if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
                 raise ValueError(f"JPEG does not decode to the camera's {self.camera.width} x {self.camera.height} image")
+            if self.to_linear is not None:
+                image = cv2.LUT(image, self.to_linear)
             T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
         decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         with guarded("localization"):

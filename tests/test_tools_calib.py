@@ -13,7 +13,7 @@ import yaml
 
 from agent.perception import ColorClass, color_mask
 from nao_core.config import from_mapping
-from nao_core.robot_model import load_robot_model
+from nao_core.robot_model import load_robot_model, tone_curve
 from station.cli import main as station
 
 K_TRUE = np.array([[587.0, 0.0, 318.0], [0.0, 590.0, 243.0], [0.0, 0.0, 1.0]])
@@ -41,9 +41,8 @@ def render_view(texture: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray
     return cv2.warpPerspective(texture, H, (640, 480), flags=cv2.INTER_AREA, borderValue=128)
 
 
-@pytest.fixture(scope="module")
-def chessboard_views(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("chessboard")
+def write_views(folder, camera=lambda image: image):
+    """Ten views of the board (each through ``camera``, the sensor's blur, curve and noise) as PNG files."""
     texture = chessboard_texture()
     centre = np.array([4 * SQUARE, 2.5 * SQUARE, 0.0])
     paths = []
@@ -54,9 +53,43 @@ def chessboard_views(tmp_path_factory):
         R = rotation(rx + math.pi, ry, rz)  # board facing the camera
         t = np.array([0.12 * (k % 3 - 1), 0.08 * (k % 2) - 0.04, z]) - R @ centre  # towards the image corners
         path = folder / f"view{k:02d}.png"
-        cv2.imwrite(str(path), render_view(texture, R, t))
+        cv2.imwrite(str(path), camera(render_view(texture, R, t)))
         paths.append(path)
     return paths
+
+
+@pytest.fixture(scope="module")
+def chessboard_views(tmp_path_factory):
+    return write_views(tmp_path_factory.mktemp("chessboard"))
+
+
+def test_clipped_views_calibrate_without_a_tone_curve(chessboard_views, tmp_path, capsys):
+    """The board drawn pure black on pure white: every edge runs from 0 to 255, clipped, and tells no
+    tone curve: gamma is left out (linear), with a warning and a note in the file saying why."""
+    output = tmp_path / "calib.yaml"
+    assert station(["calibrate", "--pattern", "9x6", "--square", str(SQUARE), "--output", str(output),
+                    *map(str, chessboard_views)]) == 0
+    assert "response_gamma" not in yaml.safe_load(output.read_text())["robot"]["camera"]
+    assert "# tone curve not measured (0 usable chessboard edges" in output.read_text()
+    assert "tone curve not measured" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("gamma", [0.45, 1.0, 1.6])
+def test_calibration_measures_the_camera_s_tone_curve(tmp_path, gamma):
+    """Views blurred by 1 px in light, then through a tone curve (sRGB-like 0.45, linear, 1.6) and
+    2 grey levels of noise: ``station calibrate`` writes robot.camera.response_gamma within 0.04 of the
+    curve (agent/tone_curve.py), and the file loads as the robot model's camera."""
+    rng = np.random.default_rng(int(gamma * 100))
+
+    def camera(image: np.ndarray) -> np.ndarray:
+        light = cv2.GaussianBlur(image.astype(np.float32) * 0.8 + 25.0, (0, 0), 1.0)  # 25-229: nothing clipped
+        return np.clip(255.0 * (light / 255.0) ** gamma + rng.normal(0.0, 2.0, light.shape), 0, 255).astype(np.uint8)
+
+    views = write_views(tmp_path, camera)
+    output = tmp_path / "calib.yaml"
+    assert station(["calibrate", "--pattern", "9x6", "--square", str(SQUARE), "--output", str(output), *map(str, views)]) == 0
+    assert yaml.safe_load(output.read_text())["robot"]["camera"]["response_gamma"] == pytest.approx(gamma, abs=0.04)
+    assert load_robot_model([output]).camera.response_gamma == pytest.approx(gamma, abs=0.04)
 
 
 def test_calibration_recovers_a_known_K_within_1_percent(chessboard_views, tmp_path):
@@ -116,6 +149,30 @@ def test_pick_colors_red_wraps_and_segments_the_region(tmp_path, capsys):
     mask = color_mask(cv2.cvtColor(image, cv2.COLOR_BGR2HSV), color)
     assert np.count_nonzero(mask[20:60, 30:90]) >= 0.97 * 40 * 60
     assert np.count_nonzero(mask) - np.count_nonzero(mask[20:60, 30:90]) == 0  # background has S = 40
+
+
+def test_pick_colors_reads_the_samples_in_light_through_the_tone_curve(tmp_path, capsys):
+    """A region of a blue paint in light (saturation 130-150), written through a camera's tone curve of
+    0.45 (which lifts its dark channels: saturation 80 or so): with ``--gamma 0.45`` the ranges are the
+    light's, as the station matches frames taken back to light (station/pilot.py), and segment it there."""
+    rng = np.random.default_rng(1)
+    hsv = np.zeros((60, 80, 3), np.uint8)
+    hsv[..., 0] = 115
+    hsv[..., 1] = rng.integers(130, 150, hsv.shape[:2])
+    hsv[..., 2] = rng.integers(120, 200, hsv.shape[:2])
+    light = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+    path = tmp_path / "blue.png"
+    cv2.imwrite(str(path), cv2.LUT(light, tone_curve(0.45)))
+    for gamma, floor in (("1", 100), ("0.45", 120)):
+        assert station(["pick-colors", "blue", f"{path}:0,0,80,60", "--margin-sv", "5", "--gamma", gamma]) == 0
+        ranges = yaml.safe_load(capsys.readouterr().out)["perception"]["colors"]["blue"]
+        assert (ranges["saturation"][0] >= floor) == (gamma == "0.45"), ranges  # encoded, the paint looks paler
+    mask = color_mask(cv2.cvtColor(cv2.LUT(cv2.imread(str(path)), tone_curve(1 / 0.45)), cv2.COLOR_BGR2HSV),
+                      from_mapping(ColorClass, ranges))
+    assert np.count_nonzero(mask) >= 0.97 * mask.size
+    with pytest.raises(SystemExit) as refused:  # argparse: a usage error, exit 2
+        station(["pick-colors", "blue", f"{path}:0,0,8,8", "--gamma", "7"])
+    assert refused.value.code == 2 and "--gamma must be in [0.2, 3], got 7" in capsys.readouterr().err
 
 
 def test_pick_colors_bad_input_is_a_message(tmp_path, capsys):
