@@ -31,11 +31,15 @@ or which saturates, is left out.
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Sequence, Tuple
+from typing import List, Sequence, Tuple
 
+import cv2
 import numpy as np
 from scipy import optimize, special
+
+from nao_core.robot_model import tone_curve
 
 GAMMA_MIN, GAMMA_MAX = 0.25, 4.0
 REACH = 0.3  # of a segment's length: the pixels this far to either side of it (well inside both squares)
@@ -46,14 +50,25 @@ MIN_EDGES = 20
 
 
 class ToneCurveError(ValueError):
-    """Too few usable edges to tell the tone curve (the message says how many)."""
+    """The edges cannot tell the tone curve (the message says why)."""
 
 
-def chessboard_edges(gray: np.ndarray, corners: np.ndarray, pattern: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=8)
+def _inverse(gamma: float) -> np.ndarray:
+    return tone_curve(1.0 / gamma)
+
+
+def in_light(image: np.ndarray, gamma: float) -> np.ndarray:
+    """A uint8 image as the light it shows: through the inverse of the tone curve ``gamma``
+    (``cv2.LUT``); the image itself for a linear camera (gamma 1)."""
+    return image if gamma == 1.0 else cv2.LUT(image, _inverse(gamma))
+
+
+def chessboard_edges(gray: np.ndarray, corners: np.ndarray, pattern: Tuple[int, int]) -> List[Tuple[np.ndarray, np.ndarray]]:
     """The pixels about the middle of each grid segment between neighbouring inner ``corners`` of a
-    chessboard (``pattern`` = (cols, rows), cv2 order): (s, v, used), each N x K (N edges, K the most
-    pixels any has; ``used`` False on padding), s the pixel centre's signed distance to the segment's
-    line, oriented so that v (its value) rises with s (module docstring)."""
+    chessboard (``pattern`` = (cols, rows), cv2 order), one (s, v) per usable edge: s each pixel
+    centre's signed distance to the segment's line, oriented so that v (its value) rises with s
+    (module docstring)."""
     grid = np.asarray(corners, np.float64).reshape(pattern[1], pattern[0], 2)
     starts = np.concatenate([grid[:, :-1].reshape(-1, 2), grid[:-1, :].reshape(-1, 2)])
     ends = np.concatenate([grid[:, 1:].reshape(-1, 2), grid[1:, :].reshape(-1, 2)])
@@ -78,11 +93,17 @@ def chessboard_edges(gray: np.ndarray, corners: np.ndarray, pattern: Tuple[int, 
         if (np.percentile(v, 95) - np.percentile(v, 5) >= MIN_CONTRAST and v.min() > SATURATED[0]
                 and v.max() < SATURATED[1]):
             edges.append((across, v))
-    k = max((len(v) for _, v in edges), default=0)
-    s_all, v_all, used = np.zeros((len(edges), k)), np.zeros((len(edges), k)), np.zeros((len(edges), k), bool)
-    for i, (across, v) in enumerate(edges):
-        s_all[i, :len(v)], v_all[i, :len(v)], used[i, :len(v)] = across, v, True
-    return s_all, v_all, used
+    return edges
+
+
+def _edge_model(s: np.ndarray, params: np.ndarray, gamma: float):
+    """The symmetric edge through the tone curve at offsets ``s`` (N x K) for each edge's (b, w, s0,
+    log sigma): (values, light, Phi, phi, z, sigma)."""
+    b, w, s0, sigma = params[:, 0:1], params[:, 1:2], params[:, 2:3], np.exp(params[:, 3:4])
+    z = (s - s0) / sigma
+    F = special.ndtr(z)
+    light = np.maximum(b + (w - b) * F, 1e-3)
+    return 255.0 * (light / 255.0) ** gamma, light, F, np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi), z, sigma
 
 
 def fit_cost(s: np.ndarray, v: np.ndarray, used: np.ndarray, gamma: float, iterations: int = 12) -> float:
@@ -94,15 +115,12 @@ def fit_cost(s: np.ndarray, v: np.ndarray, used: np.ndarray, gamma: float, itera
     light = 255.0 * (v / 255.0) ** (1.0 / gamma)
     b = (light * weight * (s < 0)).sum(axis=1) / np.maximum((weight * (s < 0)).sum(axis=1), 1.0)
     w = (light * weight * (s > 0)).sum(axis=1) / np.maximum((weight * (s > 0)).sum(axis=1), 1.0)
-    params = np.column_stack([b, w, np.zeros(len(v)), np.full(len(v), math.log(1.0))])
+    params = np.column_stack([b, w, np.zeros(len(v)), np.zeros(len(v))])  # s0 0, sigma 1 px
     for _ in range(iterations):
-        b, w, s0, sigma = params[:, 0:1], params[:, 1:2], params[:, 2:3], np.exp(params[:, 3:4])
-        z = (s - s0) / sigma
-        F, phi = special.ndtr(z), np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-        L = np.maximum(b + (w - b) * F, 1e-3)
-        model = 255.0 * (L / 255.0) ** gamma
+        model, L, F, phi, z, sigma = _edge_model(s, params, gamma)
         dv_dL = gamma * model / L
-        J = np.stack([dv_dL * (1.0 - F), dv_dL * F, -dv_dL * (w - b) * phi / sigma, -dv_dL * (w - b) * phi * z], axis=-1)
+        contrast = params[:, 1:2] - params[:, 0:1]
+        J = np.stack([dv_dL * (1.0 - F), dv_dL * F, -dv_dL * contrast * phi / sigma, -dv_dL * contrast * phi * z], axis=-1)
         J = J * weight[..., None]
         r = (v - model) * weight
         JtJ = np.einsum("nsi,nsj->nij", J, J)
@@ -110,14 +128,13 @@ def fit_cost(s: np.ndarray, v: np.ndarray, used: np.ndarray, gamma: float, itera
         step = np.linalg.solve(JtJ, np.einsum("nsi,ns->ni", J, r)[..., None])[..., 0]
         params = params + step
         params[:, 3] = np.clip(params[:, 3], math.log(0.1), math.log(10.0))
-    b, w, s0, sigma = params[:, 0:1], params[:, 1:2], params[:, 2:3], np.exp(params[:, 3:4])
-    model = 255.0 * (np.maximum(b + (w - b) * special.ndtr((s - s0) / sigma), 1e-3) / 255.0) ** gamma
-    return float(np.sum(((v - model) * weight) ** 2))
+    return float(np.sum(((v - _edge_model(s, params, gamma)[0]) * weight) ** 2))
 
 
 def estimate_gamma(s: np.ndarray, v: np.ndarray, used: np.ndarray) -> Tuple[float, float]:
     """(gamma, its standard error) of the tone curve whose symmetric edges fit the chessboard's edges
-    (``chessboard_edges``) best; raises ``ToneCurveError`` with fewer than ``MIN_EDGES`` of them."""
+    (N x K pixels, ``used`` False on padding) best; raises ``ToneCurveError`` with fewer than
+    ``MIN_EDGES`` of them, or when the best fit is at the search's bound."""
     if len(v) < MIN_EDGES:
         raise ToneCurveError(f"{len(v)} usable chessboard edges, at least {MIN_EDGES} needed")
 
@@ -127,6 +144,8 @@ def estimate_gamma(s: np.ndarray, v: np.ndarray, used: np.ndarray) -> Tuple[floa
     found = optimize.minimize_scalar(cost, bounds=(math.log(GAMMA_MIN), math.log(GAMMA_MAX)), method="bounded",
                                      options={"xatol": 1e-3})
     x, h = float(found.x), 0.02
+    if not GAMMA_MIN * 1.01 < math.exp(x) < GAMMA_MAX / 1.01:
+        raise ToneCurveError(f"the edges fit best at the search's bound ({math.exp(x):.2f}): too sharp or too clipped to tell")
     curvature = (cost(x + h) - 2.0 * float(found.fun) + cost(x - h)) / (h * h)
     variance = float(found.fun) / max(int(used.sum()) - 4 * len(v), 1)  # of one pixel's residual
     log_std = math.sqrt(2.0 * variance / curvature) if curvature > 0.0 else math.inf
@@ -135,10 +154,11 @@ def estimate_gamma(s: np.ndarray, v: np.ndarray, used: np.ndarray) -> Tuple[floa
 
 def tone_gamma(grays: Sequence[np.ndarray], corner_sets: Sequence[np.ndarray],
                pattern: Tuple[int, int]) -> Tuple[float, float, int]:
-    """(gamma, standard error, edges used) over several chessboard views; ``ToneCurveError`` without enough edges."""
-    found = [chessboard_edges(g, c, pattern) for g, c in zip(grays, corner_sets)]
-    k = max((f[0].shape[1] for f in found), default=0)
-    s, v, used = (np.concatenate([np.pad(f[i], ((0, 0), (0, k - f[i].shape[1]))) for f in found]) if found
-                  else np.zeros((0, 0)) for i in range(3))
-    gamma, error = estimate_gamma(s, v, used.astype(bool))
-    return gamma, error, len(v)
+    """(gamma, standard error, edges used) over several chessboard views; ``ToneCurveError`` when they cannot tell it."""
+    edges = [edge for g, c in zip(grays, corner_sets) for edge in chessboard_edges(g, c, pattern)]
+    k = max((len(v) for _, v in edges), default=0)
+    s, v, used = np.zeros((len(edges), k)), np.zeros((len(edges), k)), np.zeros((len(edges), k), bool)
+    for i, (across, values) in enumerate(edges):
+        s[i, :len(values)], v[i, :len(values)], used[i, :len(values)] = across, values, True
+    gamma, error = estimate_gamma(s, v, used)
+    return gamma, error, len(edges)

@@ -78,10 +78,6 @@ class CameraSpec:
     # the tone curve: a pixel reads 255 (L / 255)^gamma of its light L (docs/frames.md); 1: linear
     response_gamma: float = field(metadata=bounds(0.2, 3.0))
 
-    def to_linear(self) -> Optional[np.ndarray]:
-        """Pixel value -> its light (a ``cv2.LUT`` table), None for a linear camera (docs/frames.md)."""
-        return None if self.response_gamma == 1.0 else tone_curve(1.0 / self.response_gamma)
-
     def intrinsics(self, resolution: str) -> CameraIntrinsics:
         if resolution not in self.resolutions:
             raise KeyError(f"camera {self.sensor!r} has no resolution {resolution!r}; known: {sorted(self.resolutions)}")

@@ -22,6 +22,7 @@ from tqdm import tqdm
 from agent.camera import CameraModel
 from agent.carving import VoxelCarver
 from agent.perception import extract_silhouette
+from agent.tone_curve import in_light
 from nao_core.protocol import FrameMeta, decode
 from station.carving_worker import View, carve_views
 from station.mcap_log import LogError, read_log
@@ -43,7 +44,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
     config = setup.config
     params = config.carving if tolerance is None else dataclasses.replace(config.carving, tolerance=tolerance)
     camera = CameraModel.from_intrinsics(setup.info.intrinsics)
-    to_linear = setup.info.robot.camera.to_linear()  # frames read in light, as the run read them (station/pilot.py)
+    gamma = setup.info.robot.camera.response_gamma  # frames read in light, as the run read them (station/pilot.py)
     wanted: Dict[int, Dict] = {}
     estimate = None
     smoothed: Dict[int, List[float]] = {}  # the final carve's poses (station/run.py), when the run logged them
@@ -68,7 +69,7 @@ def carve_log(log_path: Union[str, Path], resolution: Optional[float] = None, to
             elif seq in wanted:
                 jpeg = message.proto(CompressedImage).data
                 image = cv2.imdecode(np.frombuffer(jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
-                image = image if to_linear is None else cv2.LUT(image, to_linear)
+                image = in_light(image, gamma)
                 keyframe = wanted.pop(seq)
                 predicted = None if keyframe["predicted_uv"] is None else tuple(keyframe["predicted_uv"])
                 silhouette = extract_silhouette(image, config.perception, predicted)  # the blob the run chose

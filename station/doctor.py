@@ -32,6 +32,7 @@ import numpy as np
 from agent.camera import CameraModel
 from agent.localization import RobotLocalizer
 from agent.perception import extract_silhouette, free_classes, largest_area
+from agent.tone_curve import in_light
 from nao_core.naoqi_api import error_line
 from nao_core.protocol import ProtocolError, State, decode, decode_frame
 from station.config import StationConfig, load_station_config
@@ -119,8 +120,7 @@ def robot_checks(config: StationConfig, info, frames: list, states: List[State],
     else:
         checks.append(Check("state", False, "no robot state received", "the bridge cannot read ALMemory: see its log"))
     if image is not None:
-        to_linear = info.robot.camera.to_linear()  # read in light, as the mission reads it (station/pilot.py)
-        image = image if to_linear is None else cv2.LUT(image, to_linear)
+        image = in_light(image, info.robot.camera.response_gamma)  # as the mission reads it (station/pilot.py)
         localizer = RobotLocalizer(config.localization, config.landmarks, CameraModel.from_intrinsics(info.intrinsics),
                                    config.perception)
         T_BC = np.asarray(frames[-1][1].meta.T_BC, dtype=float).reshape(4, 4)

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import yaml
 
-from nao_core.robot_model import tone_curve
+from agent.tone_curve import in_light
 
 log = logging.getLogger("station.pick_colors")
 Region = Tuple[Path, Tuple[int, int, int, int]]
@@ -55,7 +55,6 @@ def parse_region(text: str) -> Region:
 def sample_hsv(regions: Sequence[Region], gamma: float = 1.0) -> np.ndarray:
     """HSV pixels (N x 3) of all regions, read in light through the inverse of a tone curve ``gamma``
     as the station reads frames (docs/frames.md, "The camera's tone curve")."""
-    to_linear = None if gamma == 1.0 else tone_curve(1.0 / gamma)
     samples = []
     for path, (x, y, w, h) in regions:
         if not path.is_file():
@@ -65,9 +64,7 @@ def sample_hsv(regions: Sequence[Region], gamma: float = 1.0) -> np.ndarray:
             raise SampleError(f"{path}: cannot read it as an image")
         if x + w > image.shape[1] or y + h > image.shape[0]:
             raise SampleError(f"{path}: region {x},{y},{w},{h} leaves the {image.shape[1]}x{image.shape[0]} image")
-        region = image[y:y + h, x:x + w]
-        region = region if to_linear is None else cv2.LUT(region, to_linear)
-        samples.append(cv2.cvtColor(region, cv2.COLOR_BGR2HSV).reshape(-1, 3))
+        samples.append(cv2.cvtColor(in_light(image[y:y + h, x:x + w], gamma), cv2.COLOR_BGR2HSV).reshape(-1, 3))
     return np.vstack(samples).astype(float)
 
 

@@ -173,6 +173,7 @@ from agent.perception import ColourTally, extract_silhouette, measure_object
 from agent.planner import Planner, termination_reason
 from agent.self_calibration import SelfCalibration
 from agent.standstill import CalibrationStandstill
+from agent.tone_curve import in_light
 from nao_core.geometry import Pose, camera_in_world, compose, invert, planar_transform, relative, wrap_angle
 from nao_core.protocol import Info
 from nao_core.robot_model import RobotModel, head_at
@@ -280,7 +281,6 @@ class Pilot:
         self.config = config
         self.robot: RobotModel = info.robot
         self.camera = CameraModel.from_intrinsics(info.intrinsics)
-        self.to_linear = self.robot.camera.to_linear()  # the camera's inverse tone curve: frames are read in light
         self.mission = Mission(config.mission)
         self.ekf = ObjectEKF(config.ekf)
         self.planner = Planner.for_robot(config.planner, self.robot, info.resolution, ekf=config.ekf)
@@ -427,8 +427,7 @@ class Pilot:
             image = cv2.imdecode(np.frombuffer(event.frame.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
             if image is None or image.shape[:2] != (self.camera.height, self.camera.width):
                 raise ValueError(f"JPEG does not decode to the camera's {self.camera.width} x {self.camera.height} image")
-            if self.to_linear is not None:
-                image = cv2.LUT(image, self.to_linear)
+            image = in_light(image, self.robot.camera.response_gamma)
             T_BC = np.asarray(meta.T_BC, dtype=float).reshape(4, 4)
         decided = self.mission.phase in (Phase.DONE, Phase.STOPPING, Phase.FINISHED)  # the estimate decided on is the result
         with guarded("localization"):

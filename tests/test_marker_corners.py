@@ -15,8 +15,9 @@ from agent.camera import CameraModel
 from agent.localization import LandmarkDetector, LocalizationParams, RobotLocalizer, landmarks_in_image, subpix_corners
 from agent.marker_corners import refine_corners
 from agent.perception import PerceptionParams
+from agent.tone_curve import in_light
 from nao_core.config import CONFIG_DIR, load
-from nao_core.robot_model import load_robot_model, tone_curve
+from nao_core.robot_model import load_robot_model
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld, orbit_pose
 
@@ -82,13 +83,12 @@ def test_a_camera_s_tone_curve_moves_the_edges_unless_they_are_found_in_its_ligh
     Through the inverse curve the edges are back where they are (-0.05 and -0.03 px; docs/frames.md,
     "The camera's tone curve")."""
     rng = np.random.default_rng(3)
-    to_linear = tone_curve(1.0 / gamma)
     encoded, linear = [], []
     for _ in range(30):
         image, truth = blurred_marker(rng, 1.0, gamma)
         start = subpix_corners(image, truth + rng.uniform(-0.7, 0.7, truth.shape)).astype(float)
         encoded.append(radial_errors(refine_corners(image, start, CELLS), truth))
-        linear.append(radial_errors(refine_corners(cv2.LUT(image, to_linear), start, CELLS), truth))
+        linear.append(radial_errors(refine_corners(in_light(image, gamma), start, CELLS), truth))
     encoded, linear = np.mean(np.concatenate(encoded)), np.mean(np.concatenate(linear))
     assert (encoded < -0.15) if gamma < 1.0 else (encoded > 0.15), encoded  # along the diagonal: sqrt 2 times an edge's
     assert abs(linear) < 0.06 and abs(linear) < abs(encoded) / 8, (encoded, linear)
@@ -187,7 +187,7 @@ def test_through_a_tone_curve_the_low_ring_s_fixes_are_a_linear_camera_s_once_it
             frame = world.render()
             assert landmarks_in_image(camera, world.landmarks, np.array(world.truth()["camera"]["T_WC"])) >= 2
             localizer.reset()
-            image = cv2.LUT(frame.image, tone_curve(1.0 / gamma)) if told else frame.image  # station/pilot.py
+            image = in_light(frame.image, gamma) if told else frame.image  # as station/pilot.py reads it
             fix = localizer.measure(image, frame.T_BC, None, PARAMS.roll_sigma_still)
             found.append(np.inf if fix is None else float(np.linalg.norm(np.array(fix.pose[:2]) - truth[:2])))
         errors[gamma, told] = np.array(found)

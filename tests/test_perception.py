@@ -22,9 +22,9 @@ from agent.perception import (
     measure_object,
     outline_edges,
 )
+from agent.tone_curve import in_light
 from nao_core.config import CONFIG_DIR, ConfigError, from_mapping, load
 from nao_core.geometry import planar_transform, wrap_angle
-from nao_core.robot_model import tone_curve
 from nao_sim.scenarios import load_sim_config
 from nao_sim.world import SimWorld
 from tools.benchmarks.bench_perception_width import renderer_fattening_px
@@ -190,7 +190,7 @@ def test_a_camera_s_tone_curve_leaves_the_width_unbiased_through_its_inverse(par
     config = load_sim_config()
     noise = dataclasses.replace(config.noise, blur_sigma=1.0, response_gamma=gamma)
     world = SimWorld("can", robot, "vga", seed=3, config=dataclasses.replace(config, noise=noise))
-    camera, to_linear = camera_of(robot, "vga"), tone_curve(1.0 / gamma)
+    camera = camera_of(robot, "vga")
     centre, radius = np.array(world.scenario.position), world.scenario.radius
     encoded, linear = [], []
     for distance, azimuth, turn in [(0.6, 0.3, 0.0), (1.0, 2.0, 0.25), (1.3, -1.5, -0.25), (0.9, -3.0, 0.1)]:
@@ -199,7 +199,7 @@ def test_a_camera_s_tone_curve_leaves_the_width_unbiased_through_its_inverse(par
         image, T_WC = world.render().image, np.array(world.truth()["camera"]["T_WC"])
         delta = true_bearing_width(T_WC, centre, radius)[1]
         encoded.append(measure_object(extract_silhouette(image, params), camera, T_WC, params).delta - delta)
-        light = cv2.LUT(image, to_linear)  # as the station reads a frame (station/pilot.py)
+        light = in_light(image, gamma)  # as the station reads a frame (station/pilot.py)
         linear.append(measure_object(extract_silhouette(light, params), camera, T_WC, params).delta - delta)
     encoded_px, linear_px = np.array(encoded) * camera.K[0, 0], np.array(linear) * camera.K[0, 0]
     assert np.abs(encoded_px).min() > 0.4  # the bias the inverse curve removes

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from agent.perception import ColorClass, color_mask
+from agent.tone_curve import in_light
 from nao_core.config import from_mapping
 from nao_core.robot_model import load_robot_model, tone_curve
 from station.cli import main as station
@@ -167,7 +168,7 @@ def test_pick_colors_reads_the_samples_in_light_through_the_tone_curve(tmp_path,
         assert station(["pick-colors", "blue", f"{path}:0,0,80,60", "--margin-sv", "5", "--gamma", gamma]) == 0
         ranges = yaml.safe_load(capsys.readouterr().out)["perception"]["colors"]["blue"]
         assert (ranges["saturation"][0] >= floor) == (gamma == "0.45"), ranges  # encoded, the paint looks paler
-    mask = color_mask(cv2.cvtColor(cv2.LUT(cv2.imread(str(path)), tone_curve(1 / 0.45)), cv2.COLOR_BGR2HSV),
+    mask = color_mask(cv2.cvtColor(in_light(cv2.imread(str(path)), 0.45), cv2.COLOR_BGR2HSV),
                       from_mapping(ColorClass, ranges))
     assert np.count_nonzero(mask) >= 0.97 * mask.size
     with pytest.raises(SystemExit) as refused:  # argparse: a usage error, exit 2
