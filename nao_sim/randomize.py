@@ -94,6 +94,7 @@ class Randomizer:
     shutter: Tuple[float, float] = field(metadata=bounds(0.0, 0.1))  # s, exposure time
     lens_distortion: Tuple[float, float, float] = field(metadata=bounds(0.0, 0.3))  # largest |k1|, |k2|, |p1| and |p2|
     response_gamma: Tuple[float, float] = field(metadata=bounds(0.2, 3.0))  # the camera's tone curve (nao_sim/render.py)
+    response_gamma_told: bool  # the station is told the tone curve (as station calibrate measures it); false: it assumes linear
     map_error: Tuple[float, float] = field(metadata=bounds(0.0, 0.5))  # the station's map measured off: m per axis, rad of facing (1 sigma)
     map_error_told: bool  # the station's map says how well it is measured (its position_sigma, yaw_sigma)
     floor_colors: Tuple[Tuple[float, float, float], ...] = field(metadata=bounds(0.0, 255.0))  # BGR paints to draw from
@@ -150,6 +151,7 @@ class WorldSpec:
     object_color: str = "red"  # the object's perception colour class (the station's perception.object_color)
     map_error: Tuple[float, float] = (0.0, 0.0)  # the station's map measured this far off (m, rad; ``station_map``)
     map_error_told: bool = True
+    response_gamma_told: bool = True
 
     @property
     def lens(self) -> Tuple[float, ...]:
@@ -163,7 +165,7 @@ class WorldSpec:
         camera: Dict[str, object] = {}
         if any(self.lens):
             camera["resolutions"] = {name: {"dist": list(self.lens)} for name in self.robot.camera.resolutions}
-        if self.config.noise.response_gamma != 1.0:
+        if self.config.noise.response_gamma != 1.0 and self.response_gamma_told:
             camera["response_gamma"] = self.config.noise.response_gamma
         return {"robot": {"camera": camera}} if camera else {}
 
@@ -181,6 +183,8 @@ class WorldSpec:
     def station_robot(self) -> RobotModel:
         """The configured robot model (NAO V6) as the station holds it in this world (``station_overrides``)."""
         robot = load_robot_model().with_lens(self.lens)
+        if not self.response_gamma_told:
+            return robot
         return dataclasses.replace(robot, camera=dataclasses.replace(robot.camera, response_gamma=self.config.noise.response_gamma))
 
     def summary(self) -> Dict[str, object]:
@@ -281,7 +285,7 @@ def random_world(seed: int, randomizer: Optional[Randomizer] = None, base: Optio
     config = dataclasses.replace(config, scenarios={object_name: scenario},
                                  noise=dataclasses.replace(config.noise, response_gamma=gamma))
     return WorldSpec(seed, layout_name, str(landmark_path), config, scenario, object_name, true_robot, (x, y, heading), bare,
-                     object_color, tuple(float(e) for e in r.map_error), r.map_error_told)
+                     object_color, tuple(float(e) for e in r.map_error), r.map_error_told, r.response_gamma_told)
 
 
 class RandomWorld(SimWorld):

@@ -195,6 +195,24 @@ def test_random_worlds_stay_in_their_ranges_and_repeat_for_a_seed(ranges):
     assert world.true_pose() == pytest.approx(specs[0].start) and world.truth()["odom_origin"] == pytest.approx(list(specs[0].start))
 
 
+def test_the_tone_curve_is_told_the_station_or_not(tmp_path):
+    """A world's tone curve is drawn within its range and rendered either way; told (the matrix), the
+    station's camera holds it (``station_overrides``, ``station_robot``); untold (``response_gamma_told``
+    false: a user who never ran ``station calibrate``), the station keeps the configured linear camera."""
+    untold_file = tmp_path / "untold.yaml"
+    untold_file.write_text("randomizer:\n  response_gamma: [0.45, 0.45]\n  response_gamma_told: false\n")
+    r, untold = load_randomizer(), load_randomizer([untold_file])
+    for seed in range(5):
+        told_spec, untold_spec = random_world(seed, r, CONFIG, ROBOT), random_world(seed, untold, CONFIG, ROBOT)
+        gamma = told_spec.config.noise.response_gamma
+        assert r.response_gamma[0] <= gamma <= r.response_gamma[1]
+        assert told_spec.station_overrides()["robot"]["camera"]["response_gamma"] == gamma
+        assert told_spec.station_robot().camera.response_gamma == gamma
+        assert untold_spec.config.noise.response_gamma == 0.45  # rendered ...
+        assert "response_gamma" not in untold_spec.station_overrides().get("robot", {}).get("camera", {})  # ... not told
+        assert untold_spec.station_robot().camera.response_gamma == ROBOT.camera.response_gamma == 1.0
+
+
 def test_the_stress_ranges_reach_beyond_the_matrix_ranges():
     """config/stress.yaml is harsher: each range it sets reaches at least the matrix's worst end (the top;
     for the start distance, the bottom too: nearer), and a scalar is larger."""
