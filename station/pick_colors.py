@@ -19,6 +19,7 @@ station matches colours in light, and so must the ranges.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -29,6 +30,7 @@ import numpy as np
 import yaml
 
 from agent.tone_curve import in_light
+from nao_core.robot_model import CameraSpec
 
 log = logging.getLogger("station.pick_colors")
 Region = Tuple[Path, Tuple[int, int, int, int]]
@@ -93,10 +95,12 @@ def percentile(text: str) -> float:
     return value
 
 
-def tone_gamma(text: str) -> float:
+def gamma_arg(text: str) -> float:
+    """``--gamma``: within the bounds of ``robot.camera.response_gamma`` (nao_core/robot_model.py)."""
     value = float(text)
-    if not 0.2 <= value <= 3.0:
-        raise argparse.ArgumentTypeError(f"--gamma must be in [0.2, 3], got {text}")
+    lo, hi = next(f for f in dataclasses.fields(CameraSpec) if f.name == "response_gamma").metadata["bounds"]
+    if not lo <= value <= hi:
+        raise argparse.ArgumentTypeError(f"--gamma must be in [{lo:g}, {hi:g}], got {text}")
     return value
 
 
@@ -113,7 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--percentile", type=percentile, default=1.0, help="ignore this percent of outliers at each end")
     parser.add_argument("--margin-h", type=margin, default=3, help="hue margin (OpenCV units, degrees / 2)")
     parser.add_argument("--margin-sv", type=margin, default=20, help="saturation and value margin (0-255)")
-    parser.add_argument("--gamma", type=tone_gamma, default=1.0,
+    parser.add_argument("--gamma", type=gamma_arg, default=1.0,
                         help="the camera's tone curve, robot.camera.response_gamma as `station calibrate` writes it (default 1: linear)")
 
 

@@ -407,7 +407,7 @@ def table(results: List[MissionResult], resolution: str, machine: str = "", rang
         "(unreported), and a sensor "
         f"of {ranges.pixel_sigma[0]:g}-{ranges.pixel_sigma[1]:g} grey levels of noise, {ranges.blur_sigma[0]:g}-{ranges.blur_sigma[1]:g} px of blur "
         f"and {ranges.exposure[0]:g}-{ranges.exposure[1]:g} of the brightness, its shutter open {1e3 * ranges.shutter[0]:g}-{1e3 * ranges.shutter[1]:g} ms "
-        f"(motion blur), its tone curve a gamma of {ranges.response_gamma[0]:g}-{ranges.response_gamma[1]:g} (calibrated: the station told it), in a room painted one of {len(ranges.floor_colors)} floors and {len(ranges.wall_colors)} walls, lit from any azimuth "
+        f"(motion blur), its tone curve a gamma of {ranges.response_gamma[0]:g}-{ranges.response_gamma[1]:g} ({'calibrated: the station told it' if ranges.response_gamma_told else 'not told the station, which reads frames as linear'}), in a room painted one of {len(ranges.floor_colors)} floors and {len(ranges.wall_colors)} walls, lit from any azimuth "
         f"{math.degrees(ranges.light_elevation[0]):.0f}-{math.degrees(ranges.light_elevation[1]):.0f} deg up with "
         f"{ranges.ambient[0]:g}-{ranges.ambient[1]:g} of ambient light{_map_sentence(ranges)}. Errors over completed missions (centre: the result's, the carved model's "
         "centroid; filter: the filter's cylinder; both against the object's origin); clearance is the least over all missions (true robot "
