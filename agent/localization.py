@@ -313,7 +313,7 @@ from scipy.special import chdtri  # inverse chi-square survival: chi2.ppf(p, k) 
 from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
 from agent.keep_in import KeepIn
-from agent.marker_corners import refine_corners
+from agent.marker_corners import edge_shift_jacobian, refine_corners
 from agent.marker_tracking import marker_texture, rotation_flow, track_marker
 from agent.perception import ColorClass, PerceptionParams, check_image, color_mask
 from agent.pose_smoother import TrackPoint, smooth_track
@@ -404,12 +404,14 @@ class PoseFix:
     T_WC: np.ndarray  # camera pose of the fit (with the estimated torso roll and pitch)
     roll: float = 0.0  # rad, torso roll the fit found missing from T_BC
     inliers: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (world N x 3, pinhole pixels N x 2) the fit used
+    inlier_groups: Optional[np.ndarray] = None  # N: their landmark (four points a marker, in corner order)
+    edge_shift: float = 0.0  # px, the markers' edge shift its corners were corrected by (agent/marker_corners.py)
     T_BC: Optional[np.ndarray] = None  # the kinematics it was fitted with (corrected by the camera tilt learnt then)
     T_BC_reported: Optional[np.ndarray] = None  # the same as reported, before that correction (None: T_BC is)
     roll_sigma: float = 0.0  # rad, the roll prior it was fitted with
     tilt_information: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # I_d: the data's on (delta, epsilon), rad^-2
     tilt_evidence: np.ndarray = field(default_factory=lambda: np.zeros(2))  # I_d t_d (agent/camera_tilt.py)
-    intrinsics_gain: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))  # G = d(x, y, theta)/d(s_x, s_y, d_u, d_v)
+    intrinsics_gain: np.ndarray = field(default_factory=lambda: np.zeros((3, N_INTRINSICS)))  # G = d(x, y, theta)/d(s_x, s_y, d_u, d_v, e)
     conditioned: bool = False  # pose and covariance are the frame's data and the prior's together (module docstring)
     tracked: int = 0  # markers among its landmarks that were tracked from the prior (agent/marker_tracking.py)
 
@@ -444,6 +446,7 @@ _CORNER_REFINEMENT = {
 }
 Box = Tuple[int, int, int, int, float, int]  # x0, y0, x1, y1 (full-size px), smallest predicted marker side, markers predicted
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+N_INTRINSICS = 5  # (s_x, s_y, d_u, d_v, e): the intrinsics' error and the markers' edge shift (agent/self_calibration.py)
 SCALE_BOUNDS = (0.7, 1.3)  # the odometry scales s are kept within these (a NAO's walk is off by a few percent)
 MIN_DEPTH = 0.05  # m: a landmark point closer to the camera plane than this is behind it, for the fit
 
@@ -579,17 +582,19 @@ class PlanarModel:
 
         return whiten
 
-    def intrinsics_jacobian(self, uv: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
-        """d(u, v)/d(s_x, s_y, d_u, d_v) (N x 2 x 4) at projections ``uv`` (N x 2), for the intrinsics
-        f_x' = f0_x (1 + s_x), f_y' = f0_y (1 + s_y), c' = c + d of agent/self_calibration.py:
-        du/ds_x = f0_x x/z = f0_x (u - c_x) / f_x, dv/ds_y likewise, du/dd_u = dv/dd_v = 1. ``K0``: the
-        K the scales are relative to (default this model's)."""
+    def intrinsics_jacobian(self, uv: np.ndarray, group: np.ndarray, K0: Optional[np.ndarray] = None) -> np.ndarray:
+        """d(u, v)/d(s_x, s_y, d_u, d_v, e) (N x 2 x ``N_INTRINSICS``) at projections ``uv`` (N x 2) of points
+        grouped by ``group`` (four a marker), for the intrinsics f_x' = f0_x (1 + s_x), f_y' = f0_y (1 + s_y),
+        c' = c + d of agent/self_calibration.py and the markers' edge shift e (agent/marker_corners.py):
+        du/ds_x = f0_x x/z = f0_x (u - c_x) / f_x, dv/ds_y likewise, du/dd_u = dv/dd_v = 1, d u/d e =
+        ``edge_shift_jacobian``. ``K0``: the K the scales are relative to (default this model's)."""
         f0 = self.f if K0 is None else np.array([K0[0, 0], K0[1, 1]])
-        J = np.zeros((len(uv), 2, 4))
+        J = np.zeros((len(uv), 2, N_INTRINSICS))
         J[:, 0, 0] = f0[0] * (uv[:, 0] - self.c[0]) / self.f[0]
         J[:, 1, 1] = f0[1] * (uv[:, 1] - self.c[1]) / self.f[1]
         J[:, 0, 2] = 1.0
         J[:, 1, 3] = 1.0
+        J[:, :, 4] = edge_shift_jacobian(uv, group)
         return J
 
     def linear_seed(self, X: np.ndarray, target: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -1151,8 +1156,9 @@ class RobotLocalizer:
         # of (pose, scale): P_a, and the same with the intrinsics' share (module docstring)
         self._augmented = _unknown_pose(np.diag([k_s, k_s, k_w]) ** 2)
         self._augmented_total = self._augmented.copy()
-        self._intrinsics_covariance = np.zeros((4, 4))  # of (s_x, s_y, d_u, d_v): what the camera's K may be off by
-        self._intrinsics_cross = np.zeros((6, 4))  # Cov((pose, scale) error, intrinsics error)
+        self._intrinsics_covariance = np.zeros((N_INTRINSICS, N_INTRINSICS))  # of (s_x, s_y, d_u, d_v, e): what the camera may be off by
+        self._intrinsics_cross = np.zeros((6, N_INTRINSICS))  # Cov((pose, scale) error, intrinsics error)
+        self.edge_shift = 0.0  # px, e: taken out of every detected marker corner (agent/self_calibration.py sets it)
         self.rejected_jumps = 0
         self._rejected: Optional[Tuple[Pose, np.ndarray]] = None  # last rejected fix's correction C_k and R_k
         self.no_fix_reason = ""
@@ -1376,6 +1382,9 @@ class RobotLocalizer:
         if markers is None or len(markers) < self.params.min_points:  # no prior, or it predicted the markers wrong
             markers = self.detector.aruco_points(gray)
         self.detector.look_for_unmapped(gray, len(markers))
+        if self.edge_shift:  # the edges' shift taken out of the detected corners (agent/marker_corners.py)
+            markers = _Points(markers.X, markers.u - self.edge_shift * edge_shift_jacobian(markers.u, markers.group),
+                              markers.ids, markers.group)
         tracked = _Points.empty()
         if prior_p is not None:  # the markers the smear hid from the detector
             tracked = self.detector.tracked_points(gray, self.camera, T_WC, markers.ids, rate, self.params.exposure)
@@ -1474,7 +1483,7 @@ class RobotLocalizer:
         pose = (float(x), float(y), wrap_angle(float(theta)))
         gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), T_BC=model.T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), inlier_groups=points.group, edge_shift=self.edge_shift, T_BC=model.T_BC,
                        T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain, conditioned=conditioned, tracked=tracked)
@@ -1507,7 +1516,7 @@ class RobotLocalizer:
         covariance = G @ (residual_var * np.linalg.inv(H) + self._smear_covariance(points, Jr, H, whiten)) @ G.T + share_covariance
         if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) <= 0):
             raise NoFix("fix covariance not positive")
-        return covariance, Jr, whiten(model.intrinsics_jacobian(uv).reshape(-1, 4))
+        return covariance, Jr, whiten(model.intrinsics_jacobian(uv, points.group).reshape(-1, N_INTRINSICS))
 
     def _smear_covariance(self, points: _Points, Jr: np.ndarray, H: np.ndarray,
                           whiten: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -1909,14 +1918,14 @@ class RobotLocalizer:
 
     @property
     def intrinsics_covariance(self) -> np.ndarray:
-        """Of (s_x, s_y, d_u, d_v): what the camera's K may be off by (module docstring)."""
+        """Of (s_x, s_y, d_u, d_v, e): what the camera's K and its markers' edges may be off by (module docstring)."""
         return self._intrinsics_covariance
 
     def set_intrinsics_covariance(self, covariance: np.ndarray) -> None:
-        """The covariance of (s_x, s_y, d_u, d_v) the camera's K may be off by (a new K: the pose's error
+        """The covariance of (s_x, s_y, d_u, d_v, e) the camera may be off by (a new estimate: the pose's error
         no longer correlates with the new K's)."""
         self._intrinsics_covariance = np.asarray(covariance, dtype=float)
-        self._intrinsics_cross = np.zeros((6, 4))
+        self._intrinsics_cross = np.zeros((6, N_INTRINSICS))
 
     def _fuse(self, fix: PoseFix, prior: Optional[Pose], odom: Pose) -> None:
         G, X, Sigma = fix.intrinsics_gain, self._intrinsics_cross, self._intrinsics_covariance
@@ -1925,7 +1934,7 @@ class RobotLocalizer:
             pose = np.array(fix.pose)
             self._augmented = _known_pose(R, self._augmented[3:, 3:])
             self._augmented_total = _known_pose(R + G @ Sigma @ G.T, self._augmented_total[3:, 3:])
-            self._intrinsics_cross = np.vstack([G @ Sigma, np.zeros((3, 4))])
+            self._intrinsics_cross = np.vstack([G @ Sigma, np.zeros((3, N_INTRINSICS))])
         else:
             P_prior = self.covariance
             if fix.conditioned:  # the posterior already: the data's information I_d = R_post^-1 - P^-1, K = P_post I_d

@@ -6,9 +6,13 @@ calibration leaves) scales every marker range by 0.5 % and tilts every ray by a 
 1.5-2 m that is 1-2 cm of pose error, the same in every frame, and the object inherits it. The
 landmark map is a calibration target the robot sees from many poses, so the error is observable.
 
-Parameters: c = (s_x, s_y, d_u, d_v), the corrected pinhole
+Parameters: c = (s_x, s_y, d_u, d_v, e), the corrected pinhole
 
     f_x' = f_x (1 + s_x),  f_y' = f_y (1 + s_y),  c_x' = c_x + d_u,  c_y' = c_y + d_v,
+
+and the markers' edge shift e (px along each edge's outward normal: a tone curve the station is not
+told, a blur the corner refinement does not see symmetric; agent/marker_corners.py), which moves
+marker corner i by e d_i (``edge_shift_jacobian``) and no ball,
 
 common to all stored fixes k, each with its own planar pose p_k = (x, y, theta, delta) (the torso
 roll delta held by the fix's roll prior w_k = sigma_px / sigma_roll,k), the projection of
@@ -19,9 +23,12 @@ all of them at once, the poses eliminated by the Schur complement:
     S = sum_k (J_ck^T J_ck - B_k^T A_k^-1 B_k) + Lambda,   b = sum_k (J_ck^T r_k - B_k^T A_k^-1 g_pk) + Lambda c,
     dc = -S^-1 b,   dp_k = -A_k^-1 (g_pk + B_k dc),
 
-with J_c: du/ds_x = f_x x/z, dv/ds_y = f_y y/z, du/dd_u = dv/dd_v = 1, and the prior
-Lambda = sigma_px^2 diag(1/sigma_s^2, 1/sigma_s^2, 1/sigma_d^2, 1/sigma_d^2) (what a calibration
-may be off by). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
+with J_c: du/ds_x = f_x x/z, dv/ds_y = f_y y/z, du/dd_u = dv/dd_v = 1, du/de = d_i, and the prior
+Lambda = sigma_px^2 diag(1/sigma_s^2, 1/sigma_s^2, 1/sigma_d^2, 1/sigma_d^2, 1/sigma_e^2) (what a
+calibration may be off by, and how far an edge may be moved). A view of two markers or more tells e
+from the focal length and the range: e moves each marker's size by 2 e px, not the distances between
+markers (measured on rendered frames of a camera with gamma 0.45 untold, docs/frames.md). Each fix's
+pixels are stored as detected, before the localizer took the applied e out of them (``PoseFix.edge_shift``). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
 principal point shift across the image is nearly a turn of the robot (d_u is held mostly by its
 prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
@@ -60,8 +67,9 @@ camera tilt on its mount (agent/camera_tilt.py), learnt from the same standing f
 the estimate of its own time, a fix stored before the tilt had settled tilted the others'
 solution (measured: matrix seed 23, the camera rolled 0.5 deg, focal scales 1 % off).
 
-The estimate is *applied* (``camera`` returns the corrected model) once ``min_frames`` fixes agree
-on it with focal-scale std <= ``max_scale_std``; until then the configured camera stays.
+The estimate is *applied* (``camera`` returns the corrected model, ``edge_shift`` its e, which the
+localizer takes out of every detected corner) once ``min_frames`` fixes agree on it with focal-scale
+std <= ``max_scale_std``; until then the configured camera stays, and no edge shift.
 """
 
 from __future__ import annotations
@@ -73,7 +81,8 @@ import numpy as np
 
 from agent.camera import CameraModel
 from agent.camera_tilt import CameraTilt
-from agent.localization import MIN_DEPTH, NoFix, PlanarModel, PoseFix
+from agent.localization import MIN_DEPTH, N_INTRINSICS, NoFix, PlanarModel, PoseFix
+from agent.marker_corners import edge_shift_jacobian
 from nao_core.config import bounds
 from nao_core.landmark_map import LandmarkMap
 
@@ -85,6 +94,7 @@ class SelfCalibrationParams:
     enabled: bool
     scale_sigma: float = field(metadata=bounds(1e-5, 0.2))  # prior std of each focal scale error (relative)
     principal_sigma: float = field(metadata=bounds(0.01, 50.0))  # prior std of each principal point error, px
+    edge_sigma: float = field(metadata=bounds(1e-3, 5.0))  # prior std of the markers' edge shift e, px
     pixel_sigma: float = field(metadata=bounds(0.01, 10.0))  # image point noise, px (the prior's weight)
     min_points: int = field(metadata=bounds(4, 1000))  # a fix with fewer inlier points is not stored
     min_landmarks: int = field(metadata=bounds(2, 1000))  # ... nor one of fewer landmarks (one marker's size is its range)
@@ -112,7 +122,8 @@ class SelfCalibrationParams:
 @dataclass(frozen=True)
 class _Fix:
     X: np.ndarray  # N x 3 world points
-    u: np.ndarray  # N x 2 pixels, distortion removed
+    u: np.ndarray  # N x 2 pixels, distortion removed, as detected (no edge shift taken out)
+    group: np.ndarray  # N: the landmark of each (four points a marker)
     T_BC: np.ndarray  # as reported: corrected by the camera tilt learnt by the time of the solve
     p: np.ndarray  # (x, y, theta, delta) of the fix
     roll_sigma: float
@@ -120,7 +131,7 @@ class _Fix:
 
 @dataclass(frozen=True)
 class Calibration:
-    """An estimate: c = (s_x, s_y, d_u, d_v), its covariance, the fixes it used and their RMS (px)."""
+    """An estimate: c = (s_x, s_y, d_u, d_v, e), its covariance, the fixes it used and their RMS (px)."""
 
     c: np.ndarray
     covariance: np.ndarray
@@ -133,7 +144,7 @@ class Calibration:
 
 
 def corrected(camera: CameraModel, c: np.ndarray) -> CameraModel:
-    """``camera`` with c = (s_x, s_y, d_u, d_v) applied to its K (module docstring)."""
+    """``camera`` with c = (s_x, s_y, d_u, d_v, ...) applied to its K (module docstring)."""
     K = camera.K.copy()
     K[0, 0] *= 1.0 + c[0]
     K[1, 1] *= 1.0 + c[1]
@@ -164,16 +175,21 @@ class SelfCalibration:
         return self.configured if self.applied is None else corrected(self.configured, self.applied.c)
 
     @property
+    def edge_shift(self) -> float:
+        """px, the applied estimate's e (0 before one)."""
+        return 0.0 if self.applied is None else float(self.applied.c[4])
+
+    @property
     def covariance(self) -> np.ndarray:
-        """Of c = (s_x, s_y, d_u, d_v) for ``camera``: the applied estimate's, else the prior's (what a
-        calibration may be off by)."""
+        """Of c = (s_x, s_y, d_u, d_v, e) for ``camera`` and ``edge_shift``: the applied estimate's, else
+        the prior's (what a calibration may be off by)."""
         if self.applied is not None:
             return self.applied.covariance
         return np.diag(self._prior_sigmas() ** 2)
 
     def _prior_sigmas(self) -> np.ndarray:
         p = self.params
-        return np.array([p.scale_sigma, p.scale_sigma, p.principal_sigma, p.principal_sigma])
+        return np.array([p.scale_sigma, p.scale_sigma, p.principal_sigma, p.principal_sigma, p.edge_sigma])
 
     def can_store_fixes_from(self, landmark_map: LandmarkMap) -> bool:
         """Could a fix from this map be stored: ``min_landmarks`` landmarks and ``min_points`` points (four per marker)?"""
@@ -209,8 +225,10 @@ class SelfCalibration:
                 or not self.head_settled or stamp - self._last_stamp < p.min_interval):
             return False
         X, u = fix.inliers
+        group = np.arange(len(X)) // 4 if fix.inlier_groups is None else np.asarray(fix.inlier_groups)
+        detected = u + fix.edge_shift * edge_shift_jacobian(u, group)  # as detected: c's e is the whole shift
         reported = fix.T_BC if fix.T_BC_reported is None else fix.T_BC_reported
-        self.fixes = (self.fixes + [_Fix(X, u, reported, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
+        self.fixes = (self.fixes + [_Fix(X, detected, group, reported, np.array([*fix.pose, fix.roll]), fix.roll_sigma)])[-p.max_frames:]
         self._last_stamp = stamp
         self.stored += 1
         self._new += 1
@@ -244,7 +262,7 @@ class SelfCalibration:
     def _solve(self, fixes: List[_Fix]):
         p = self.params
         prior = (p.pixel_sigma / self._prior_sigmas()) ** 2
-        c = np.zeros(4) if self.estimate is None else self.estimate.c.copy()
+        c = np.zeros(N_INTRINSICS) if self.estimate is None else self.estimate.c.copy()
         poses = [f.p.copy() for f in fixes]
         K0 = self.configured.K
         try:
@@ -253,7 +271,7 @@ class SelfCalibration:
                 blocks, terms = [], []  # per fix: its pose step's factors; its S_k and b_k (for D_k)
                 camera = corrected(self.configured, c)
                 for fix, pose in zip(fixes, poses):
-                    r, Jp, Jc, w2 = self._linearize(camera, K0, fix, pose)
+                    r, Jp, Jc, w2 = self._linearize(camera, c[4], K0, fix, pose)
                     A = Jp.T @ Jp
                     A[3, 3] += w2
                     g = Jp.T @ r
@@ -272,14 +290,14 @@ class SelfCalibration:
                 if np.abs(dc).max() < 1e-7:
                     break
             camera = corrected(self.configured, c)
-            residuals = [self._residual(camera, fix, pose) for fix, pose in zip(fixes, poses)]
+            residuals = [self._residual(camera, c[4], fix, pose) for fix, pose in zip(fixes, poses)]
         except (np.linalg.LinAlgError, NoFix):
             return None
         if not np.all(np.isfinite(c)):
             return None
         rms = np.array([float(np.sqrt(np.mean(r**2) * 2.0)) for r in residuals])
         n = sum(len(r) for r in residuals)
-        dof = max(1, n - 4 * len(fixes) - 4)
+        dof = max(1, n - 4 * len(fixes) - N_INTRINSICS)
         s2 = max(p.pixel_sigma**2, float(sum(np.sum(r**2) for r in residuals)) / dof)
         covariance = s2 * np.linalg.inv(S)
         influence = np.zeros(len(fixes))
@@ -293,19 +311,19 @@ class SelfCalibration:
         return calibration, rms, influence
 
     @staticmethod
-    def _residual(camera: CameraModel, fix: _Fix, pose: np.ndarray) -> np.ndarray:
+    def _residual(camera: CameraModel, edge: float, fix: _Fix, pose: np.ndarray) -> np.ndarray:
         """Residuals (2N) of one fix at (c, pose), no Jacobian."""
         uv, z = PlanarModel(camera, fix.T_BC).project(pose, fix.X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point behind the camera")
-        return (uv - fix.u).ravel()
+        return (uv + edge * edge_shift_jacobian(uv, fix.group) - fix.u).ravel()
 
-    def _linearize(self, camera: CameraModel, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
-        """Residuals (2N), J_p (2N x 4), J_c (2N x 4) and the roll prior weight of one fix at (c, pose)."""
+    def _linearize(self, camera: CameraModel, edge: float, K0: np.ndarray, fix: _Fix, pose: np.ndarray):
+        """Residuals (2N), J_p (2N x 4), J_c (2N x 5) and the roll prior weight of one fix at (c, pose)."""
         model = PlanarModel(camera, fix.T_BC)
         uv, z, J = model.jacobian(pose, fix.X)
         if np.any(z < MIN_DEPTH):
             raise NoFix("landmark point behind the camera")
-        Jc = model.intrinsics_jacobian(uv, K0)
+        Jc = model.intrinsics_jacobian(uv, fix.group, K0)
         w2 = (self.params.pixel_sigma / fix.roll_sigma) ** 2
-        return (uv - fix.u).ravel(), J.reshape(-1, 4), Jc.reshape(-1, 4), w2
+        return (uv + edge * Jc[:, :, 4] - fix.u).ravel(), J.reshape(-1, 4), Jc.reshape(-1, N_INTRINSICS), w2

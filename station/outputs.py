@@ -141,7 +141,8 @@ class KeyframeRecord(Record):
 @dataclass(frozen=True)
 class CalibrationRecord(Record):
     """A self-calibration estimate applied (agent/self_calibration.py): the corrected K, the error
-    c = (s_x, s_y, d_u, d_v) of the configured one with its standard deviations, the fixes and their RMS (px)."""
+    c = (s_x, s_y, d_u, d_v) of the configured one with its standard deviations, the fixes and their RMS (px),
+    the markers' edge shift e and its standard deviation (px; agent/marker_corners.py)."""
 
     TOPIC: ClassVar[str] = SELF_CALIBRATION
     NAME: ClassVar[str] = "agent.Calibration"
@@ -151,6 +152,8 @@ class CalibrationRecord(Record):
     std: Tuple[float, float, float, float]
     fixes: int
     rms_px: float
+    edge_shift_px: Optional[float] = None  # logs before the edge shift: none
+    edge_shift_std_px: Optional[float] = None
 
 
 @dataclass(frozen=True)

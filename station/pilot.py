@@ -558,13 +558,15 @@ class Pilot:
 
     def _recalibrated(self, step: Step, t: float) -> None:
         """Every user of the camera (localizer, perception, head servo, keyframes) switches to the
-        intrinsics the landmark fixes gave (agent/self_calibration.py); from the next frame on."""
+        intrinsics the landmark fixes gave, the localizer to their markers' edge shift
+        (agent/self_calibration.py); from the next frame on."""
         self.camera = self.localizer.camera = self.calibration.camera
+        self.localizer.edge_shift = self.calibration.edge_shift
         self.localizer.set_intrinsics_covariance(self.calibration.covariance)
         applied = self.calibration.applied
         std = np.sqrt(np.diag(applied.covariance))
-        step.outputs.append(CalibrationRecord(t, _flat(self.camera.K), tuple(map(float, applied.c)), tuple(map(float, std)),
-                                              applied.frames, applied.rms))
+        step.outputs.append(CalibrationRecord(t, _flat(self.camera.K), tuple(map(float, applied.c[:4])), tuple(map(float, std[:4])),
+                                              applied.frames, applied.rms, float(applied.c[4]), float(std[4])))
 
     def _reanchor(self, world: Pose, odom: Pose) -> None:
         """Rebuild the filter in W from the views kept in the odometry frame (module docstring)."""

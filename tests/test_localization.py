@@ -20,6 +20,7 @@ from agent.camera_tilt import CameraTilt
 from agent.localization import (
     FOREIGN_EVERY,
     LocalizationParams,
+    N_INTRINSICS,
     PlanarModel,
     PoseFix,
     RobotLocalizer,
@@ -27,6 +28,7 @@ from agent.localization import (
     head_directions,
     landmarks_in_image,
 )
+from agent.marker_corners import edge_shift_jacobian
 from agent.marker_tracking import rotation_flow
 from agent.perception import ImageError, PerceptionParams
 from agent.self_calibration import corrected
@@ -1233,38 +1235,47 @@ def test_a_tilt_missing_from_T_BC_leaves_the_fix_where_the_robot_is(params, robo
 
 def test_a_fix_s_intrinsics_gain_is_the_derivative_of_its_pose(params, robot):
     """``PoseFix.intrinsics_gain`` G = dp/dc: the fix of exact pixels with K changed by a small c
-    moves by G c (central differences, to 2 %)."""
+    moves by G c, and by G_e e with the corners' edge shift e taken out of them (the model predicts
+    them moved by e: agent/marker_corners.py) (central differences, to 2 %)."""
     camera, T_BC, X = _two_far_markers(robot)
     truth = np.array([0.1, -0.05, 0.02])
     pixels = PlanarModel(camera, T_BC).project(truth, X)[0]
     localizer = RobotLocalizer(params, LandmarkMap(()), camera)
     G = localizer.fit(X, pixels, T_BC).intrinsics_gain
+    assert G.shape == (3, N_INTRINSICS)
     for k, step in enumerate((1e-4, 1e-4, 0.05, 0.05)):
         c = np.zeros(4)
         c[k] = step
         moved = [np.array(RobotLocalizer(params, LandmarkMap(()), corrected(camera, sign * c)).fit(X, pixels, T_BC).pose)
                  for sign in (1.0, -1.0)]
         np.testing.assert_allclose((moved[0] - moved[1]) / (2.0 * step), G[:, k], rtol=0.02, atol=1e-4 * np.abs(G).max())
+    D, step = edge_shift_jacobian(pixels, np.arange(len(X)) // 4), 0.02
+    moved = [np.array(localizer.fit(X, pixels - sign * step * D, T_BC).pose) for sign in (1.0, -1.0)]
+    np.testing.assert_allclose((moved[0] - moved[1]) / (2.0 * step), G[:, 4], rtol=0.02, atol=1e-4 * np.abs(G).max())
 
 
 def test_the_total_covariance_holds_the_intrinsics_error_every_fix_shares(params, robot):
     """Monte Carlo: a standing robot fuses 15 fixes of two far markers, seen through a camera whose
     focal lengths are off by N(0, 0.5 %) and principal point by N(0, 1 px) (what a calibration leaves),
-    0.15 px of corner noise, its tilt on the mount known. The fusion's covariance treats the fixes as independent and shrinks under
+    every marker edge moved by N(0, 0.2 px) (agent/marker_corners.py), 0.15 px of corner noise, its tilt on the mount known. The fusion's covariance treats the fixes as independent and shrinks under
     their shared error (NEES far above 3); ``total_covariance``, with that intrinsics covariance, is
     consistent: NEES averages 3 (chi-square, 3 dof; 200 runs: 99 % of means within 2.4-3.6)."""
     camera, T_BC, X = _two_far_markers(robot)
-    sigma = np.array([0.005, 0.005, 1.0, 1.0])
+    sigma = np.array([0.005, 0.005, 1.0, 1.0, 0.2])
+    groups = np.arange(len(X)) // 4
     tilt_known = dataclasses.replace(params, camera_tilt_sigma=(params.camera_tilt_floor,) * 2)
     image = np.zeros((camera.height, camera.width, 3), np.uint8)
-    rng = np.random.default_rng(5)
+    rng, edge_rng = np.random.default_rng(5), np.random.default_rng(6)
     nees_fused, nees_total = [], []
     for _ in range(200):
         truth = rng.normal(0.0, 0.05, 3)
-        seen_by = PlanarModel(corrected(camera, rng.normal(0.0, sigma)), T_BC)
+        c = np.append(rng.normal(0.0, sigma[:4]), edge_rng.normal(0.0, sigma[4]))
+        seen_by = PlanarModel(corrected(camera, c), T_BC)
+        exact = seen_by.project(truth, X)[0]
+        exact = exact + c[4] * edge_shift_jacobian(exact, groups)
         localizer = RobotLocalizer(tilt_known, LandmarkMap(()), camera)
         localizer.set_intrinsics_covariance(np.diag(sigma**2))
-        pixels = lambda: seen_by.project(truth, X)[0] + rng.normal(0.0, params.pixel_sigma, (len(X), 2))  # noqa: E731
+        pixels = lambda: exact + rng.normal(0.0, params.pixel_sigma, (len(X), 2))  # noqa: E731
         localizer.measure = lambda image, T_BC, prior=None, roll_sigma=None, camera_rate=None, prior_covariance=None: localizer.fit(
             X, pixels(), T_BC, prior, roll_sigma=roll_sigma, prior_covariance=prior_covariance)
         for k in range(15):

@@ -508,7 +508,7 @@ def test_active_starts_standing_for_the_self_calibration_and_walks_once_it_is_ap
     again = over + p.standstill_interval  # no estimate applied yet: it stands again
     pilot.mission.on_frame(again, object_seen=True, landmark_fix=True, localized=True)
     assert pilot.handle(Tick(again)).decision.walk == (0.0, 0.0, 0.0) and pilot.standstill.attempts == 2
-    pilot.calibration.applied = SimpleNamespace(c=np.zeros(4))  # an estimate applied: it ends, and none again
+    pilot.calibration.applied = SimpleNamespace(c=np.zeros(5))  # an estimate applied: it ends, and none again
     assert pilot.handle(Tick(again + 0.1)).decision.walk == pytest.approx(pilot.command)
     assert not pilot._calibration_standstill(again + 2 * p.standstill_interval, start=True)  # noqa: SLF001
     nowhere = Pilot(CONFIG, INFO)  # from far outside the room no marker is big enough to detect
@@ -571,11 +571,11 @@ def test_a_view_s_camera_covariance_is_the_pose_s_through_the_camera_s_lever_arm
     """The filter is given the camera's covariance (agent/ekf.py, "Pose uncertainty"): the localizer's
     total covariance moved to the camera. A heading error alone swings a camera 5 cm ahead of the
     robot's origin across its arm (std 5 cm x 0.01 rad), not along it; before the first fix (the
-    odometry frame) there is none. The localizer starts with the calibration prior's intrinsics covariance."""
+    odometry frame) there is none. The localizer starts with the calibration prior's intrinsics (and edge shift) covariance."""
     pilot = Pilot(CONFIG, INFO)
     p = CONFIG.self_calibration
     np.testing.assert_allclose(np.diag(pilot.localizer.intrinsics_covariance),
-                               [p.scale_sigma**2, p.scale_sigma**2, p.principal_sigma**2, p.principal_sigma**2])
+                               [p.scale_sigma**2, p.scale_sigma**2, p.principal_sigma**2, p.principal_sigma**2, p.edge_sigma**2])
     theta = 0.3
     pilot.pose = (1.0, 2.0, theta)
     cam = (1.0 + 0.05 * math.cos(theta), 2.0 + 0.05 * math.sin(theta), theta)
@@ -616,8 +616,9 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
     of 70 ms after the image) while the head sweeps at 0.6 rad/s: each bearing errs by 2.4 deg, the
     same way. Told nothing (``stamp_std`` 0: the floor ``station.stamp_sigma``), the sweep's views
     pull the estimate the still head had made; told they are worth ``unlearnt_latency_std``
-    (docs/frames.md), they weigh so little that it moves less than a quarter of that (the still
-    head's start, its range from the floor contact, is already within 2 cm of the can)."""
+    (docs/frames.md), they weigh so little that it moves less than a third of that (measured 1.4 mm
+    against 5.4, NIS 0.9 against 4.7; the still head's start, its range from the floor contact, is
+    already within 2 cm of the can)."""
     late, sweep = 0.07, 0.6  # s, rad/s
     # the filter's weighting alone: markers tracked through the sweep (agent/marker_tracking.py) would give
     # fixes that turn the pose to the image and so undo most of the stamps' bias themselves
@@ -646,8 +647,8 @@ def test_a_turning_cameras_views_weigh_what_their_stamps_are_worth():
         moved[stamp_std] = float(np.hypot(*(pilot.ekf.x[:2] - still[:2])))
         nis[stamp_std] = sum(r.nis for r in sweeping)
     assert moved[0.0] > 0.005  # the biased sweep pulls a filter that trusts its stamps by millimetres
-    assert moved[0.1] < 0.25 * moved[0.0], moved
-    assert nis[0.1] < 0.2 * nis[0.0], nis
+    assert moved[0.1] < 0.3 * moved[0.0], moved
+    assert nis[0.1] < 0.25 * nis[0.0], nis
 
 
 def test_a_turning_cameras_keyframe_weighs_its_stamp_error():
