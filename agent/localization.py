@@ -216,12 +216,14 @@ re-localizes and never teaches the camera tilt (its information is the prior's t
 
 The intrinsics' share. A focal length 0.5 % off scales every marker range alike, frame after
 frame: fixes share that error, and P, which takes them as independent, shrinks below it (measured
-in the sparse layout: P said 7 mm, the poses were 19 mm off, NEES ~800). With c = (s_x, s_y, d_u,
-d_v) the intrinsics' error (agent/self_calibration.py; covariance Sigma, ``intrinsics_covariance``:
-the prior, or the applied estimate's), a fix is z = p + G c + v with G = dp/dc = -H^-1 J_p^T J_c
-(the fit's normal matrix H, J_c = ``PlanarModel.intrinsics_jacobian``). ``total_covariance`` P_t
-and the cross-covariance X = Cov(pose error, c) follow c as a consider parameter (Schmidt) under
-the same gain K, whose pose estimates are unchanged:
+in the sparse layout: P said 7 mm, the poses were 19 mm off, NEES ~800). So does the markers' edge
+shift e (a tone curve the station is not told moves every marker edge alike: agent/marker_corners.py),
+which the localizer takes out of the detected corners as estimated (``edge_shift``). With c = (s_x,
+s_y, d_u, d_v, e) the intrinsics' error and what is left of e (agent/self_calibration.py; covariance
+Sigma, ``intrinsics_covariance``: the prior, or the applied estimate's), a fix is z = p + G c + v
+with G = dp/dc = -H^-1 J_p^T J_c (the fit's normal matrix H, J_c = ``PlanarModel.intrinsics_jacobian``).
+``total_covariance`` P_t and the cross-covariance X = Cov(pose error, c) follow c as a consider
+parameter (Schmidt) under the same gain K, whose pose estimates are unchanged:
 
     first fix:  P_t = R + G Sigma G^T,  X = G Sigma
     odometry:   P_t <- F P_t F^T + G Q G^T,  X <- F X
@@ -1483,8 +1485,8 @@ class RobotLocalizer:
         pose = (float(x), float(y), wrap_angle(float(theta)))
         gain = -G @ np.linalg.solve(H, Jr.T @ Jc)
         return PoseFix(pose=pose, covariance=covariance, rms_px=rms, landmark_ids=points.landmark_ids,
-                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u), inlier_groups=points.group, edge_shift=self.edge_shift, T_BC=model.T_BC,
-                       T_BC_reported=self._reported_T_BC,
+                       points=len(points), T_WC=T_WC, roll=float(p[3]), inliers=(points.X, points.u),
+                       inlier_groups=points.group, edge_shift=self.edge_shift, T_BC=model.T_BC, T_BC_reported=self._reported_T_BC,
                        roll_sigma=self._roll_sigma, tilt_information=information, tilt_evidence=evidence,
                        intrinsics_gain=gain, conditioned=conditioned, tracked=tracked)
 

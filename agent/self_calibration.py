@@ -28,7 +28,8 @@ Lambda = sigma_px^2 diag(1/sigma_s^2, 1/sigma_s^2, 1/sigma_d^2, 1/sigma_d^2, 1/s
 calibration may be off by, and how far an edge may be moved). A view of two markers or more tells e
 from the focal length and the range: e moves each marker's size by 2 e px, not the distances between
 markers (measured on rendered frames of a camera with gamma 0.45 untold, docs/frames.md). Each fix's
-pixels are stored as detected, before the localizer took the applied e out of them (``PoseFix.edge_shift``). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
+pixels are stored as detected, before the localizer took the applied e out of them
+(``PoseFix.edge_shift``). The estimate's covariance is s^2 S^-1, s^2 the residual variance per axis. A
 principal point shift across the image is nearly a turn of the robot (d_u is held mostly by its
 prior); the focal scales and d_v are not. Fixes whose RMS after the fit exceeds
 ``outlier_rms_ratio`` times the median are dropped as wrong associations, and the fit repeated.
