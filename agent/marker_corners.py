@@ -127,21 +127,20 @@ def edge_shift_jacobian(u: np.ndarray, group: np.ndarray) -> np.ndarray:
     normal (module docstring, the edge shift), for points ``u`` (N x 2) grouped by ``group``: a group of
     four is a marker's corners in cv2.aruco (cyclic) order; any other point (a colour blob) does not move."""
     u = np.asarray(u, dtype=np.float64)
-    group = np.asarray(group)
     D = np.zeros_like(u)
-    for g in np.unique(group):
-        mine = np.flatnonzero(group == g)
-        if len(mine) != 4:
-            continue
-        quad = u[mine]
-        centre = quad.mean(axis=0)
-        normals = []
-        for k in range(4):  # edge k: corner k to k + 1
-            d = quad[(k + 1) % 4] - quad[k]
-            n = np.array([d[1], -d[0]]) / max(float(np.linalg.norm(d)), 1e-9)
-            normals.append(n if np.dot(n, 0.5 * (quad[k] + quad[(k + 1) % 4]) - centre) >= 0 else -n)
-        for k in range(4):
-            A = np.array([normals[k - 1], normals[k]])
-            if abs(np.linalg.det(A)) > 1e-3:  # a degenerate quad's corner does not move
-                D[mine[k]] = np.linalg.solve(A, np.ones(2))
+    order = np.argsort(np.asarray(group), kind="stable")  # each group's points together, in their order
+    _, starts, counts = np.unique(np.asarray(group)[order], return_index=True, return_counts=True)
+    rows = order[starts[counts == 4][:, None] + np.arange(4)]  # M x 4: the markers' corners
+    if not len(rows):
+        return D
+    quads = u[rows]
+    edges = np.roll(quads, -1, axis=1) - quads  # edge k: corner k to k + 1
+    n = np.stack([edges[..., 1], -edges[..., 0]], axis=-1) / np.maximum(np.linalg.norm(edges, axis=-1, keepdims=True), 1e-9)
+    outward = np.einsum("mki,mki->mk", n, 0.5 * (quads + np.roll(quads, -1, axis=1)) - quads.mean(axis=1, keepdims=True))
+    n = np.where(outward[..., None] >= 0.0, n, -n)
+    a, b = np.roll(n, 1, axis=1), n  # at corner k: the edges to k - 1 and to k + 1
+    det = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    safe = np.abs(det) > 1e-3  # a degenerate quad's corner does not move
+    inverse_ones = np.stack([b[..., 1] - a[..., 1], a[..., 0] - b[..., 0]], axis=-1) / np.where(safe, det, 1.0)[..., None]
+    D[rows] = np.where(safe[..., None], inverse_ones, 0.0)  # [a; b] d = (1, 1)
     return D
